@@ -1,0 +1,1 @@
+"""Quasi-static linear-elastic FEM of the pad with rigid-indenter contact."""
