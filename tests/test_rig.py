@@ -355,6 +355,15 @@ def test_soft_limits_refuse_before_sending(bench):
     assert len(sim.stage.received) == sent
 
 
+def test_lost_link_is_reported(bench):
+    sim = bench.sim()
+    stage = _stage(bench, sim)
+    sim.stop()  # the device goes away while connected
+    with pytest.raises(RigConnectionError) as err:
+        stage.position()
+    assert f"lost the link to the stage on '{sim.stage_port}'" in str(err.value)
+
+
 def test_connection_errors(bench):
     stage = GCodeStage(StageConfig(port="/dev/no-such-stage-port"))
     with pytest.raises(RigConnectionError, match=r"'/dev/no-such-stage-port'.*list_ports"):
@@ -577,4 +586,4 @@ def test_cli_simulate_writes_a_usable_config(bench, tmp_path):
     cfg = load_rig_config(config_path)
     assert f"stage port: {cfg.stage.port}" in result.stdout
     assert f"gauge port: {cfg.gauge.port}" in result.stdout
-    assert cfg.stage.port.startswith("/dev/pts/") and cfg.stage.frame == StageFrame()
+    assert cfg.stage.port != cfg.gauge.port and cfg.stage.frame == StageFrame()

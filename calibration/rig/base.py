@@ -93,19 +93,31 @@ class LineChannel:
             )
         return self._serial
 
+    def _lost(self, exc: Exception) -> RigConnectionError:
+        return RigConnectionError(
+            f"lost the link to the {self.device} on '{self.port}': {exc}. Check that the device "
+            "is still powered and plugged in, then disconnect and connect again."
+        )
+
     def write_line(self, text: str) -> None:
         """Send ``text`` followed by the configured newline (ASCII)."""
         ser = self._require_open()
-        ser.write((text + self.newline).encode("ascii"))
-        ser.flush()
+        try:
+            ser.write((text + self.newline).encode("ascii"))
+            ser.flush()
+        except OSError as exc:  # serial.SerialException and its timeout are OSErrors
+            raise self._lost(exc) from exc
 
     def discard_input(self) -> list[str]:
         """Drop everything received but not yet read; return the complete lines dropped."""
         ser = self._require_open()
-        waiting = ser.in_waiting
-        if waiting:
-            self._buffer.extend(ser.read(waiting))
-        ser.reset_input_buffer()
+        try:
+            waiting = ser.in_waiting
+            if waiting:
+                self._buffer.extend(ser.read(waiting))
+            ser.reset_input_buffer()
+        except OSError as exc:
+            raise self._lost(exc) from exc
         dropped = self._pop_lines()
         self._buffer.clear()
         return dropped
@@ -150,7 +162,10 @@ class LineChannel:
                 return line
             if time.monotonic() >= deadline:
                 return None
-            chunk = ser.read(max(1, ser.in_waiting))
+            try:
+                chunk = ser.read(max(1, ser.in_waiting))
+            except OSError as exc:
+                raise self._lost(exc) from exc
             if chunk:
                 self._buffer.extend(chunk)
 
