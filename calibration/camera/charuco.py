@@ -2,12 +2,14 @@
 
 The board
 ---------
-Default: 12 x 12 squares of 3.0 mm (36 x 36 mm, covering the +-17.5 mm output grid with a
-0.5 mm rim), ArUco markers of 2.25 mm from ``DICT_4X4_100`` (72 markers). Each marker bit is
+Default: 14 x 14 squares of 3.0 mm (42 x 42 mm), ArUco markers of 2.25 mm from
+``DICT_4X4_100`` (98 markers). The 13 x 13 = 169 inner chessboard corners are the calibration
+points; they reach +-18 mm, so the whole +-17.5 mm output grid is measured rather than
+extrapolated (the board is larger than a 35 mm pad on purpose; corners outside the camera's view
+are simply not detected), and the centre corner is the board's centre. Each marker bit is
 0.375 mm: 9 printer dots at 600 dpi, about 5 camera pixels at 0.07 mm/px, enough for detection.
-The 11 x 11 = 121 inner chessboard corners are the calibration points; the centre corner is the
-board's centre. Board coordinates (OpenCV's): origin at the board's top-left corner as printed, x
-to the right, y down, mm.
+Board coordinates (OpenCV's): origin at the board's top-left corner as printed, x to the right,
+y down, mm.
 
 Placement and the sensor frame
 ------------------------------
@@ -68,8 +70,8 @@ class CharucoBoardSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     format_version: Literal[1] = Field(1, description="Version of this file format.")
-    squares_x: int = Field(12, ge=3, description="Squares along the board's x (printed width).")
-    squares_y: int = Field(12, ge=3, description="Squares along the board's y (printed height).")
+    squares_x: int = Field(14, ge=3, description="Squares along the board's x (printed width).")
+    squares_y: int = Field(14, ge=3, description="Squares along the board's y (printed height).")
     square_mm: float = Field(3.0, gt=0, description="Side of a chessboard square, mm.")
     marker_mm: float = Field(2.25, gt=0, description="Side of an ArUco marker, mm.")
     dictionary: Literal[tuple(_DICTIONARIES)] = Field(  # type: ignore[valid-type]

@@ -176,7 +176,7 @@ def camera(
 def make_board(
     out: Path = typer.Option(Path("board.png"), "--out", help="PNG to write (+ a .json beside)."),
     dpi: int = typer.Option(600, "--dpi", min=150, help="Printer resolution, dots per inch."),
-    squares: str = typer.Option("12x12", "--squares", help="Squares COLSxROWS."),
+    squares: str = typer.Option("14x14", "--squares", help="Squares COLSxROWS."),
     square_mm: float = typer.Option(3.0, "--square-mm", help="Square side, mm."),
     marker_mm: float = typer.Option(2.25, "--marker-mm", help="Marker side, mm."),
     dictionary: str = typer.Option("DICT_4X4_100", "--dictionary", help="ArUco dictionary."),

@@ -73,6 +73,8 @@ def draw_fit(axes, fit: PlaneFit, frame: np.ndarray, label: str = "") -> None:
     ax2.imshow(_gray(rectify(np.asarray(frame), m)), cmap="gray", interpolation="nearest",
                extent=(g.x_min_mm, g.x_max_mm, g.y_min_mm, g.y_max_mm), origin="upper")
     ax2.plot(fit.xy_mm[:, 0], fit.xy_mm[:, 1], ".", ms=1.5, color="lime")
+    ax2.set_xlim(g.x_min_mm, g.x_max_mm)
+    ax2.set_ylim(g.y_min_mm, g.y_max_mm)
     ax2.set_title(f"rectified {g.ny}x{g.nx}, sensor frame\n(seen from outside the gel)",
                   fontsize=8)
     ax2.set_xlabel("x (mm)", fontsize=7)
@@ -121,8 +123,8 @@ def make_docs_figure(path: str | Path, dpi: int = 80) -> None:
     spec = CharucoBoardSpec()
     board_frame = render_charuco_frame(spec, camera, sensor_to_und @ board_to_sensor(spec), rng)
     charuco_fit = calibrate_charuco([board_frame], spec)
-    pressed, reference = render_dot_press(camera, sensor_to_und, 2.5, (13, 13), rng)
-    dots_fit, _ = calibrate_dots(pressed, reference, 2.5, grid_shape=(13, 13))
+    pressed, reference = render_dot_press(camera, sensor_to_und, 2.5, (15, 15), rng)
+    dots_fit, _ = calibrate_dots(pressed, reference, 2.5, grid_shape=(15, 15))
 
     fig, axes = plt.subplots(2, 3, figsize=(11, 6.6), constrained_layout=True, dpi=dpi)
     draw_fit(axes[0], charuco_fit, board_frame, "ChArUco, ")

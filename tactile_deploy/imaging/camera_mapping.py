@@ -483,6 +483,16 @@ def build_remap(mapping: CameraMapping) -> tuple[np.ndarray, np.ndarray]:
             uv[:, 1].reshape(shape).astype(np.float32))
 
 
+def compact_remap(remap: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The tables of :func:`build_remap` in OpenCV's fixed-point form, for a faster :func:`rectify`.
+
+    Returns ``(map_xy, map_frac)``: (ny, nx, 2) int16 whole pixels and (ny, nx) uint16
+    interpolation-table indices (positions quantised to 1/32 px).
+    """
+    map_x, map_y = remap
+    return cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+
+
 def grid_coverage(mapping: CameraMapping) -> float:
     """Fraction of output-grid cell centres whose raw pixel lies inside the image."""
     map_x, map_y = build_remap(mapping)
@@ -491,12 +501,17 @@ def grid_coverage(mapping: CameraMapping) -> float:
     return float(inside.mean())
 
 
+_REMAP_DTYPES = frozenset(np.dtype(t) for t in (np.uint8, np.uint16, np.int16, np.float32,
+                                                 np.float64))
+
+
 def rectify(frame: np.ndarray, mapping: CameraMapping, remap=None) -> np.ndarray:
     """Resample a raw camera frame onto the sensor-frame output grid (one ``cv2.remap``).
 
-    frame : (H, W) or (H, W, C) with C <= 4, uint8 / uint16 / float32 / float64, raw camera
-        pixels; H, W must equal the mapping's image size.
-    remap : ``(map_x, map_y)`` from :func:`build_remap`; built on the fly when None (slow path).
+    frame : (H, W) or (H, W, C), uint8 / uint16 / int16 / float32 / float64, raw camera pixels;
+        H, W must equal the mapping's image size.
+    remap : ``(map_x, map_y)`` from :func:`build_remap`, or their :func:`compact_remap` form
+        (about twice as fast, positions to 1/32 px); built on the fly when None (slow path).
     Returns (ny, nx) or (ny, nx, C), the frame's dtype: row i, column j is the sensor point
     ``x = x_min + (j + 0.5) * pitch_x``, ``y = y_max - (i + 0.5) * pitch_y`` (bilinear; cells
     outside the image repeat the nearest edge pixel).
@@ -514,12 +529,16 @@ def rectify(frame: np.ndarray, mapping: CameraMapping, remap=None) -> np.ndarray
     if remap is None:
         remap = build_remap(mapping)
     map_x, map_y = remap
-    if map_x.shape != (mapping.grid.ny, mapping.grid.nx) or map_y.shape != map_x.shape:
+    if map_x.shape[:2] != (mapping.grid.ny, mapping.grid.nx) or map_y.shape[:2] != map_x.shape[:2]:
         raise ValueError(
             f"remap tables have shape {map_x.shape}/{map_y.shape}, expected "
             f"{(mapping.grid.ny, mapping.grid.nx)}: rebuild them with build_remap(mapping)"
         )
-    return cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if frame.dtype not in _REMAP_DTYPES:
+        raise ValueError(f"frame dtype {frame.dtype} is not supported; use one of "
+                         f"{', '.join(sorted(str(d) for d in _REMAP_DTYPES))}")
+    out = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out[..., None] if out.ndim < len(shape) else out
 
 
 # --------------------------------------------------------------------------------- files
