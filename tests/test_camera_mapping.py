@@ -515,3 +515,28 @@ def test_committed_json_schema_matches_model():
     assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text(), (
         "camera_mapping.schema.json is stale: run `python -m calibration.camera.schema`"
     )
+
+
+def test_cli_camera_charuco_single_frame_with_figure(tmp_path, charuco_scene):
+    from typer.testing import CliRunner
+
+    from calibration.camera.cli import camera_app
+
+    camera, s2u, frame = charuco_scene
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "00_plane.png"), frame)
+    out, fig = tmp_path / "m.json", tmp_path / "fit.png"
+    res = CliRunner().invoke(camera_app, [
+        "camera", "--frames", str(frames), "--target", "charuco", "--board-faces", "outside",
+        "--out", str(out), "--figure", str(fig)])
+    assert res.exit_code == 0, res.output
+    m = load_mapping(out)
+    sx, sy = _projected_mm_per_px(camera, s2u)
+    assert abs(m.mm_per_px_x / sx - 1) < 0.01 and abs(m.mm_per_px_y / sy - 1) < 0.01
+    assert m.image_mirrored is False
+    assert fig.stat().st_size > 10_000 and cv2.imread(str(fig)) is not None
+    res = CliRunner().invoke(camera_app, [
+        "camera", "--frames", str(frames), "--target", "charuco", "--board",
+        str(tmp_path / "missing.json"), "--out", str(out)])
+    assert res.exit_code == 1 and "missing.json not found" in res.output

@@ -30,6 +30,13 @@ class BoardFacing(str, Enum):
     outside = "outside"
 
 
+class SensorAxis(str, Enum):
+    plus_x = "+x"
+    minus_x = "-x"
+    plus_y = "+y"
+    minus_y = "-y"
+
+
 def _parse_pair(text: str, option: str) -> tuple[int, int]:
     try:
         a, b = (int(v) for v in text.lower().split("x"))
@@ -80,8 +87,10 @@ def camera(
                                               "(default: first by name)."),
     board_faces: BoardFacing = typer.Option(BoardFacing.camera, "--board-faces", help="charuco: "
                                             "printed side faces the camera or outside."),
-    u_axis: str = typer.Option("+x", "--u-axis", help="dots: sensor axis along image right."),
-    v_axis: str = typer.Option("+y", "--v-axis", help="dots: sensor axis along image down."),
+    u_axis: SensorAxis = typer.Option(SensorAxis.plus_x, "--u-axis",
+                                      help="dots: sensor axis along image right (+-45 deg)."),
+    v_axis: SensorAxis = typer.Option(SensorAxis.plus_y, "--v-axis",
+                                      help="dots: sensor axis along image down (+-45 deg)."),
     focal_px: Optional[float] = typer.Option(None, "--focal-px", help="Single view: assumed "
                                              "focal length, px (default max(W, H))."),
     blur_px: float = typer.Option(2.5, "--blur-px", help="dots: smoothing before detection, px."),
@@ -140,12 +149,13 @@ def camera(
             fit, _ = calibrate_dots(
                 images, _read_image(ref_path), pitch_mm,
                 grid_shape=_parse_pair(dot_grid, "--dot-grid") if dot_grid else None,
-                u_axis=u_axis, v_axis=v_axis, focal_px=focal_px, blur_sigma_px=blur_px,
+                u_axis=u_axis.value, v_axis=v_axis.value, focal_px=focal_px,
+                blur_sigma_px=blur_px,
                 name=pressed[0].name,
             )
             shown = images[0]
-    except (CalibrationError, ValueError) as e:
-        console.print(f"[red]calibration failed:[/red] {e}")
+    except (CalibrationError, ValueError, FileNotFoundError) as e:
+        typer.echo(f"calibration failed: {e}", err=True)
         raise typer.Exit(code=1) from None
 
     save_mapping(fit.mapping, out)
