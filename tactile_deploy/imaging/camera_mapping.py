@@ -236,7 +236,8 @@ class CameraMapping(BaseModel):
             if abs(stored - actual) > _DERIVED_RTOL * actual:
                 raise ValueError(
                     f"{name}={stored!r} does not match the value {actual!r} derived from the "
-                    "intrinsics, distortion and homography (edit those, not the derived field)"
+                    "intrinsics, distortion and homography; after editing those, rebuild the "
+                    "file with camera_mapping_from_parameters() (or recalibrate)"
                 )
         if self.image_mirrored != mirrored:
             raise ValueError(
