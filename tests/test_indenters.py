@@ -397,3 +397,30 @@ def test_envelope_grid_disk_cache(tmp_path, monkeypatch, caplog):
     assert "ignoring unreadable envelope cache" in caplog.text
     Indenter(mesh, "ring", cache_dir=tmp_path, pitch_mm=0.05).envelope_grid()
     assert len(list(tmp_path.glob("*.npz"))) == 2
+
+
+# ---- tools ----------------------------------------------------------------------------------------
+
+
+def test_contact_sheet_draws_pressing_surfaces(tmp_path):
+    from PIL import Image
+
+    from tactile_deploy.indenters.contact_sheet import envelope_image, render_contact_sheet
+
+    # Panels: 0.125 mm pixels over +-12.5 mm; the ring (radii 2.5-4 mm) is hollow, the punch not.
+    ring = envelope_image(get_indenter("ring"), relief_mm=1.0, pixels=201)
+    punch = envelope_image(get_indenter("flat_punch"), relief_mm=1.0, pixels=201)
+    assert ring.mask[100, 100] and not punch.mask[100, 100] and punch[100, 100] == 0.0
+    assert ring[100, 100 + 26] == 0.0  # 3.25 mm to the right
+    assert np.sum(~ring.mask) * 0.125**2 == pytest.approx(np.pi * (4.0**2 - 2.5**2), rel=0.05)
+    out = render_contact_sheet(tmp_path / "sheet.png", names=["flat_punch", "ring"], columns=2,
+                               pixels_per_panel=60)
+    assert Image.open(out).size[0] > 200
+
+
+def test_benchmark_runs_at_small_settings():
+    from tactile_deploy.indenters.benchmark import run
+
+    results = run(small=True)
+    assert set(results) >= {"raster_10k_min", "raster_pad_max", "intrusion_1100"}
+    assert all(r["min_ms"] > 0 for r in results.values())

@@ -48,6 +48,8 @@ DEFAULT_MAX_RELIEF_MM = 4.0
 ENVELOPE_OUTSIDE_MM = 1e30
 # Fractional pixel positions closer than this to a pixel line are snapped onto it.
 _SNAP_PIXELS = 1e-6
+# Largest envelope grid (pixels) built for a mesh: 64 MB of float32.
+_MAX_GRID_PIXELS = 1 << 24
 # Bump when the rasterised envelope changes for the same mesh (invalidates the disk cache).
 _ENVELOPE_CACHE_VERSION = 1
 _USE_DEFAULT_CACHE = "default"
@@ -317,6 +319,13 @@ class Indenter:
         tri = tri[low]
         xy = tri[:, :, :2].reshape(-1, 2)
         raster = RasterGrid.covering(xy.min(axis=0), xy.max(axis=0), self.pitch_mm, pad_pixels=2)
+        if raster.nx * raster.ny > _MAX_GRID_PIXELS:
+            raise ValueError(
+                f"indenter {self.name!r}: its pressing surface spans "
+                f"{np.ptp(xy[:, 0]):.1f} x {np.ptp(xy[:, 1]):.1f} mm, a {raster.nx} x {raster.ny} "
+                f"envelope grid at pitch_mm={self.pitch_mm:g}; at most {_MAX_GRID_PIXELS} pixels "
+                f"are allowed: pass a larger pitch_mm or a smaller max_relief_mm"
+            )
         z = rasterize_triangles(tri, raster, reduce="min").z_mm
         heights = np.where(z <= self.max_relief_mm, z, np.inf).astype(np.float32)
         heights[[0, -1], :] = np.inf

@@ -3,8 +3,10 @@
 Every shape is built deterministically with trimesh in the indenter frame (mm, pressing face
 down, lowest point z = 0, origin at the bounding-box centre in x, y) and fits a 35 mm pad: its
 pressing surface lies within 12 mm of the origin. Curved surfaces are faceted to a chord error of
-at most 1 um (:data:`tactile_deploy.indenters.shapes.FACET_ERROR_MM`), except where a builder
-says otherwise. Shapes assembled from several parts (pins on a backing plate, ...) are unions of
+at most 1 um (:data:`tactile_deploy.indenters.shapes.FACET_ERROR_MM`); on doubly curved surfaces
+(spheres, ellipsoid, torus) a triangle can sit up to 2 um inside the true surface (measured along
+the normal), so the envelope there is up to ``2 um / cos(slope)`` too high. The screw thread's
+crest and root corners are rounded over one axial sample (P/16 = 0.08 mm). Shapes assembled from several parts (pins on a backing plate, ...) are unions of
 closed, possibly overlapping parts.
 
 Kinds: ``"primitive"`` (geometric shapes) and ``"novel"`` (household and industrial objects, for
@@ -287,7 +289,8 @@ def _usb_a_plug():
 def _screw_thread():
     import trimesh
 
-    pitch, r_major, length, sections = 1.25, 4.0, 14.0, 128
+    pitch, r_major, length = 1.25, 4.0, 14.0
+    sections = S.sections_for(r_major)
     r_minor = r_major - 5.0 / 16.0 * pitch * math.tan(math.radians(60.0))
     x = np.linspace(-0.5 * length, 0.5 * length, round(length / pitch * 16) + 1)
     phi = 2.0 * math.pi * np.arange(sections) / sections
@@ -308,7 +311,7 @@ def _screw_thread():
 
 
 @_register("novel", "2 x 2 toy brick upside down: four studs 4.8 mm across on an 8 mm grid")
-def _lego_studs():
+def _brick_studs():
     studs = []
     for x in (-4.0, 4.0):
         for y in (-4.0, 4.0):
@@ -320,7 +323,7 @@ def _lego_studs():
 
 @_register("novel", "crimped bottle cap, open side down: 21 flutes, 22 mm across, 0.3 mm wall")
 def _bottle_cap():
-    n = 21 * 24
+    n = 21 * 48  # flute curvature ~1.8 / mm: chord error <= 1 um
     phi = 2.0 * math.pi * np.arange(n) / n
     outer = 10.6 + 0.45 * np.cos(21.0 * phi)
     skirt = S.prism(*S.polar_region(phi, outer, outer - 0.3), 0.0, 5.0)

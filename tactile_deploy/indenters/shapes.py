@@ -1,8 +1,9 @@
 """Deterministic builders of closed triangle meshes (mm) for procedural indenters.
 
 Plain functions returning ``trimesh.Trimesh`` solids with outward normals. Curved surfaces are
-faceted so that the chord error (largest distance between the true surface and its facets,
-measured along the normal) is at most ``facet_error_mm`` (default :data:`FACET_ERROR_MM`).
+faceted so that the chord error of every sampled curve (profile, circle) is at most
+``facet_error_mm`` (default :data:`FACET_ERROR_MM`); a triangle of a doubly curved surface (sphere)
+then lies at most about twice that inside the true surface.
 
 Two-dimensional regions are given as ``(vertices (n, 2), triangles (k, 3), loops)``: triangles
 counter-clockwise seen from +z, ``loops`` the boundary cycles as vertex-index arrays with the
