@@ -186,13 +186,12 @@ def rasterize_triangles(
     z_best = np.full(n_pix, fill)
     face_best = np.full(n_pix, _NO_FACE, dtype=np.int64) if want_index else None
 
-    # Keep triangles with a non-degenerate xy projection that reach the grid.
+    # Keep triangles that are not vertical and reach the grid.
     tol = float(edge_tolerance_mm)
     p = grid.pitch_mm
     v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
     xy_lo = np.minimum(np.minimum(v0[:, :2], v1[:, :2]), v2[:, :2]) - tol
     xy_hi = np.maximum(np.maximum(v0[:, :2], v1[:, :2]), v2[:, :2]) + tol
-    ext = np.maximum(xy_hi - xy_lo, 1e-300)
     normal = np.cross(v1 - v0, v2 - v0)  # (m, 3); z component = twice the signed xy area
     row_lo = np.maximum(np.ceil((xy_lo[:, 1] - grid.y0_mm) / p), 0)
     row_hi = np.minimum(np.floor((xy_hi[:, 1] - grid.y0_mm) / p), grid.ny - 1)

@@ -199,6 +199,21 @@ def test_intrusion_input_errors():
         AnalyticSphere(-1.0)
 
 
+def test_indenter_construction_errors():
+    import trimesh
+
+    plate = trimesh.creation.box(extents=[150.0, 150.0, 2.0])
+    with pytest.raises(ValueError, match="'plate': pitch_mm must be > 0, got 0.0"):
+        Indenter(plate, "plate", pitch_mm=0.0)
+    with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh, got ndarray"):
+        Indenter(np.zeros((3, 3)), "points")
+    # A 150 mm flat plate would need a 6,000 x 6,000 grid at 0.025 mm: refused with advice.
+    with pytest.raises(ValueError, match=r"'plate'.*6005 x 6005 envelope grid.*larger pitch_mm"):
+        Indenter(plate, "plate", cache_dir=None).envelope_grid()
+    coarse = Indenter(plate, "plate", cache_dir=None, pitch_mm=0.5).envelope_grid()
+    assert np.all(coarse.heights_mm[2:-2, 2:-2] == 0.0)
+
+
 # ---- the procedural library ---------------------------------------------------------------------
 
 

@@ -307,7 +307,7 @@ def _screw_thread():
     faces += [np.stack([np.full(s, ends[0]), idx[0], np.roll(idx[0], -1)], 1),
               np.stack([np.full(s, ends[1]), np.roll(idx[-1], -1), idx[-1]], 1)]
     vertices = np.concatenate([v.reshape(-1, 3), [[x[0], 0.0, 0.0], [x[-1], 0.0, 0.0]]])
-    return S._checked(trimesh.Trimesh(vertices, np.concatenate(faces), process=True), "thread")
+    return S.closed_solid(trimesh.Trimesh(vertices, np.concatenate(faces), process=True), "thread")
 
 
 @_register("novel", "2 x 2 toy brick upside down: four studs 4.8 mm across on an 8 mm grid")

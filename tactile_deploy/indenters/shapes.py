@@ -39,7 +39,7 @@ def revolved(profile_rz, sections: int):
 
     profile = np.asarray(profile_rz, dtype=np.float64)
     mesh = trimesh.creation.revolve(profile, sections=int(sections))
-    return _checked(mesh, "solid of revolution")
+    return closed_solid(mesh, "solid of revolution")
 
 
 def sphere(radius_mm: float, facet_error_mm: float = FACET_ERROR_MM):
@@ -90,7 +90,7 @@ def convex_solid(points_mm):
     """Convex hull of points (n, 3) mm."""
     import trimesh
 
-    return _checked(trimesh.convex.convex_hull(np.asarray(points_mm, dtype=np.float64)), "convex hull")
+    return closed_solid(trimesh.convex.convex_hull(np.asarray(points_mm, dtype=np.float64)), "convex hull")
 
 
 def regular_polygon(n_sides: int, circumradius_mm: float, phase_rad: float = 0.0) -> np.ndarray:
@@ -120,7 +120,7 @@ def prism(vertices_xy_mm, triangles, loops, z0_mm: float, z1_mm: float):
         faces.append(np.stack([i, j, j + n], axis=1))
         faces.append(np.stack([i, j + n, i + n], axis=1))
     mesh = trimesh.Trimesh(vertices, np.concatenate(faces), process=True)
-    return _checked(mesh, "prism")
+    return closed_solid(mesh, "prism")
 
 
 def polar_region(phi_rad, r_outer_mm, r_inner_mm=None):
@@ -200,7 +200,7 @@ def heightfield_solid(x_mm, y_mm, height_mm, top_mm: float):
     faces += [np.stack([loop, j, t1], axis=1), np.stack([loop, t1, t], axis=1),
               np.stack([t, t1, np.full(m, centre)], axis=1)]
     vertices = np.concatenate([bottom, top, [[x.mean(), y.mean(), top_mm]]])
-    return _checked(trimesh.Trimesh(vertices, np.concatenate(faces), process=True), "heightfield solid")
+    return closed_solid(trimesh.Trimesh(vertices, np.concatenate(faces), process=True), "heightfield solid")
 
 
 def union(parts):
@@ -210,8 +210,9 @@ def union(parts):
     return trimesh.util.concatenate(list(parts))
 
 
-def _checked(mesh, what: str):
-    """Return ``mesh`` if it is a closed, consistently wound solid with positive volume."""
+def closed_solid(mesh, what: str):
+    """``mesh`` checked to be closed and consistently wound, turned inside out if needed so that
+    its normals point outwards (positive volume); ``what`` names it in the error."""
     if not (mesh.is_watertight and mesh.is_winding_consistent):
         raise RuntimeError(f"{what}: mesh is not closed ({len(mesh.faces)} faces)")
     if mesh.volume <= 0:
