@@ -52,6 +52,18 @@ def elasticity_form(s: fem.Sample, u: fem.Field, v: fem.Field, lame: wp.vec2d):
     )
 
 
+@fem.integrand
+def divergence_form(s: fem.Sample, u: fem.Field, q: fem.Field):
+    """q div(u): weak divergence of a P1 displacement onto P1 nodal (pressure) functions."""
+    return q(s) * fem.div(u, s)
+
+
+@fem.integrand
+def volume_form(s: fem.Sample, q: fem.Field):
+    """q: integrated, the lumped nodal volumes V_a = int N_a dV."""
+    return q(s)
+
+
 def _check_inputs(
     vertices: np.ndarray, tets: np.ndarray, E_mpa: float, nu: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -96,8 +108,14 @@ def assemble_stiffness_warp(
     E_mpa: float,
     nu: float,
     device: str | None = None,
+    formulation: str = "standard",
 ) -> sp.csr_matrix:
     """Global stiffness K of a linear-tet mesh, assembled with warp.fem.
+
+    ``formulation="nodal_pressure"`` assembles ``K_dev + kappa D' diag(1/V) D`` instead (see
+    :func:`tactile_deploy.fem.elasticity.assemble_stiffness_numpy`): the deviatoric part is the
+    same elasticity form with lambda = -2 mu / 3, ``D`` the mixed form ``q div(u)`` between the
+    vector P1 space and a scalar P1 space, ``V`` the integral of each scalar basis function.
 
     Parameters
     ----------
@@ -119,9 +137,14 @@ def assemble_stiffness_warp(
         Node-major DOFs, ``3 * node + c``; sorted column indices; same sparsity and values as
         :func:`tactile_deploy.fem.elasticity.assemble_stiffness_numpy` to round-off.
     """
+    if formulation not in ("standard", "nodal_pressure"):
+        raise ValueError(f"formulation must be 'standard' or 'nodal_pressure', got {formulation!r}")
     vertices, tets_i32 = _check_inputs(vertices, tets, E_mpa, nu)
     lam = E_mpa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     mu = E_mpa / (2.0 * (1.0 + nu))
+    kappa = lam + 2.0 * mu / 3.0
+    if formulation == "nodal_pressure":
+        lam = -2.0 * mu / 3.0  # deviatoric part; the bulk term is added below
     n = len(vertices)
 
     device = wp.get_device(device)
@@ -149,6 +172,35 @@ def assemble_stiffness_warp(
         indptr = K_bsr.offsets.numpy()[: n + 1]
         indices = K_bsr.columns.numpy()[:nnz]
         blocks = K_bsr.values.numpy()[:nnz]
+        if formulation == "nodal_pressure":
+            scalar = fem.make_polynomial_space(geo, degree=1, dtype=wp.float64)
+            q = fem.make_test(scalar, domain=cells)
+            linear = fem.RegularQuadrature(cells, order=1)  # q div(u) is linear: exact
+            D_bsr = fem.integrate(
+                divergence_form,
+                quadrature=linear,
+                fields={"u": u, "q": q},
+                output_dtype=wp.float64,
+                kernel_options=_KERNEL_OPTIONS,
+                device=device,
+            )
+            V = fem.integrate(
+                volume_form,
+                quadrature=linear,
+                fields={"q": q},
+                output_dtype=wp.float64,
+                kernel_options=_KERNEL_OPTIONS,
+                device=device,
+            ).numpy()
+            d_nnz = D_bsr.nnz_sync()
+            D = sp.bsr_matrix(
+                (
+                    D_bsr.values.numpy()[:d_nnz].reshape(d_nnz, 1, 3).astype(np.float64),
+                    D_bsr.columns.numpy()[:d_nnz],
+                    D_bsr.offsets.numpy()[: n + 1],
+                ),
+                shape=(n, 3 * n),
+            ).tocsr()
 
     if K_bsr.nrow != n or K_bsr.ncol != n or blocks.shape[1:] != (3, 3):
         raise RuntimeError(
@@ -160,5 +212,7 @@ def assemble_stiffness_warp(
     K = sp.bsr_matrix(
         (blocks.astype(np.float64, copy=False), indices, indptr), shape=(3 * n, 3 * n)
     ).tocsr()
+    if formulation == "nodal_pressure":
+        K = (K + D.T @ sp.diags(kappa / V) @ D).tocsr()
     K.sort_indices()
     return K

@@ -35,6 +35,13 @@ class PadGeometry(BaseModel):
     dome_height_mm: float = Field(
         0.0, ge=0, description="Sag of a domed sensing surface from apex to rim, mm (0 = flat)."
     )
+    sector_deg: float = Field(
+        360.0,
+        gt=0,
+        le=360.0,
+        description="Angular extent of a disc, degrees; 90 builds a quarter model whose straight "
+        "edges lie on the x = 0 and y = 0 symmetry planes (shape='disc').",
+    )
     edge_mm: float = Field(0.972, gt=0, description="Target in-plane node spacing, mm.")
     n_layers: int = Field(4, ge=1, description="Number of element layers through the thickness.")
     # Grading (disc only): spacing edge_mm... grows from core_edge_mm outside core_radius_mm.
@@ -57,6 +64,8 @@ class PadGeometry(BaseModel):
             )
         if self.shape == "box" and self.core_radius_mm > 0:
             raise ValueError("grading (core_radius_mm > 0) is only supported for shape='disc'")
+        if self.sector_deg != 360.0 and (self.shape != "disc" or self.sector_deg != 90.0):
+            raise ValueError(f"sector_deg must be 360 or 90 (a disc quarter), got {self.sector_deg}")
         if self.top_layer_mm > self.thickness_mm:
             raise ValueError(
                 f"top_layer_mm={self.top_layer_mm} exceeds thickness_mm={self.thickness_mm}"
@@ -79,7 +88,10 @@ class PadGeometry(BaseModel):
     def contains_xy(self, x_mm, y_mm, margin_mm: float = 0.0):
         """True where (x, y) lies inside the pad outline shrunk by ``margin_mm``."""
         if self.shape == "disc":
-            return x_mm**2 + y_mm**2 <= (self.radius_mm - margin_mm) ** 2
+            inside = x_mm**2 + y_mm**2 <= (self.radius_mm - margin_mm) ** 2
+            if self.sector_deg == 90.0:
+                inside = inside & (x_mm >= 0) & (y_mm >= 0)
+            return inside
         return (abs(x_mm) <= 0.5 * self.width_mm - margin_mm) & (
             abs(y_mm) <= 0.5 * self.length_mm - margin_mm
         )

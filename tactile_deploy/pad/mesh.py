@@ -89,6 +89,15 @@ class PadMesh:
         layers = np.arange(g.n_layers + 1)[:, None] * self.n_plane
         return (layers + plane_rim[None, :]).ravel()
 
+    @cached_property
+    def symmetry_nodes(self) -> dict[str, np.ndarray]:
+        """Nodes on the symmetry planes of a quarter model: ``{"x0": ..., "y0": ...}`` (empty for full pads)."""
+        if self.geometry.sector_deg == 360.0:
+            return {"x0": np.zeros(0, np.int64), "y0": np.zeros(0, np.int64)}
+        tol = 1e-9 * self.geometry.half_extent_mm
+        xy = self.vertices[:, :2]
+        return {"x0": np.flatnonzero(np.abs(xy[:, 0]) < tol), "y0": np.flatnonzero(np.abs(xy[:, 1]) < tol)}
+
     @property
     def node_sets(self) -> dict[str, np.ndarray]:
         """Named node sets: ``backplate`` (fixed), ``sensing`` (top), ``side`` (wall)."""

@@ -63,9 +63,13 @@ def plane_points(geometry: PadGeometry) -> np.ndarray:
     for k, r in enumerate(radii, start=1):
         spacing = r - previous
         previous = r
-        n = max(6, round(2.0 * math.pi * r / spacing))
-        phase = (k * _RING_PHASE) % 1.0
-        angles = 2.0 * math.pi * (np.arange(n) + phase) / n
+        if geometry.sector_deg == 360.0:
+            n = max(6, round(2.0 * math.pi * r / spacing))
+            phase = (k * _RING_PHASE) % 1.0
+            angles = 2.0 * math.pi * (np.arange(n) + phase) / n
+        else:  # quarter: both straight edges carry nodes (symmetry planes)
+            n = max(1, round(0.5 * math.pi * r / spacing))
+            angles = 0.5 * math.pi * np.arange(n + 1) / n
         points.append(np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1))
     return np.concatenate(points, axis=0)
 
