@@ -1,0 +1,1 @@
+"""Synthetic cameras of the simulator."""
