@@ -185,7 +185,20 @@ class ContactSimulator:
             self._load_or_compute_operators()
         return self._G
 
-    def _load_or_compute_operators(self, progress=None) -> None:
+    def prepare(self, progress=None) -> bool:
+        """Load or compute the surface operators now; True when they had to be computed.
+
+        ``progress(n_columns_done)`` is called while computing (``n_operator_columns`` in all).
+        """
+        if self._C is not None and self._G is not None:
+            return False
+        return self._load_or_compute_operators(progress)
+
+    @property
+    def n_operator_columns(self) -> int:
+        return int(self.contact_cols.size)
+
+    def _load_or_compute_operators(self, progress=None) -> bool:
         folder = cache_dir() / f"surface_{self.operator_key}"
         n_c = self.contact_cols.size
         if self._use_cache and (folder / "C.npy").exists() and (folder / "G.npy").exists():
@@ -194,7 +207,7 @@ class ContactSimulator:
                 G = np.load(folder / "G.npy", mmap_mode="r")
                 if C.shape == (n_c, n_c) and G.shape == (n_c, self.mesh.n_nodes, 3):
                     self._C, self._G = C, np.asarray(G)
-                    return
+                    return False
             except (OSError, ValueError):
                 pass
         self._C, self._G = self.compute_operators(progress=progress)
@@ -205,6 +218,7 @@ class ContactSimulator:
             for name, arr in (("G.npy", self._G), ("C.npy", self._C)):
                 with atomic_path(folder / name) as tmp, open(tmp, "wb") as f:
                     np.save(f, arr)
+        return True
 
     def compute_operators(self, chunk: int = 256, progress=None) -> tuple[np.ndarray, np.ndarray]:
         """Green's functions of the contact dofs: one sparse solve per dof, in chunks.

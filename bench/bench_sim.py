@@ -1,0 +1,152 @@
+"""Simulator throughput on the CPU: samples/s of the data generator vs a per-sample sparse solve.
+
+    python bench/bench_sim.py [--n 200] [--workers 2] [--small]   (or: tactile-deploy bench sim)
+
+Measures, in one run on this machine:
+
+* the data generator (surface Green's functions + exact active set + depth camera), with
+  ``--workers`` processes, in samples/s over ``--n`` random primitive contacts;
+* the baseline: the same contacts solved by the full sparse method (active-set iteration that
+  re-factors the whole stiffness for every active set), on a few samples;
+* memory: operator bytes (shared by the workers), stored bytes per sample, peak RSS.
+
+The GPU figure comes from ``bench/bench_sim_gpu.py`` (results in ``bench/results/``) and is
+quoted next to it when present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def run(n: int = 200, workers: int = 2, baseline_samples: int = 2, seed: int = 123) -> dict:
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.simulator import ContactSimulator
+    from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
+    from tactile_deploy.simulation.contact import get_simulator
+    from tactile_deploy.simulation.dataset import DatasetSpec, generate_dataset
+
+    material = Material(nu=0.48)
+    names = tuple(list_indenters("primitive"))
+    sim = get_simulator(material)
+    t0 = time.perf_counter()
+    sim.prepare()
+    prepare_s = time.perf_counter() - t0
+    spec = DatasetSpec(n_samples=n, indenters=names, seed=seed, shard_size=max(1, n // (2 * workers)), material=material)
+    for name in names:  # build envelope grids before timing (cached on disk after the first run)
+        get_indenter(name).envelope_grid()
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        generate_dataset(spec, tmp, workers=workers)
+        gen_s = time.perf_counter() - t0
+        bytes_per_sample = sum(p.stat().st_size for p in Path(tmp).glob("shard_*.npz")) / n
+    rate = n / gen_s
+
+    # Baseline: full sparse solve per sample (same physics, same contacts).
+    full = ContactSimulator(sim.mesh, material, method="full", assembly="numpy", use_cache=False)
+    rng = np.random.default_rng(seed)
+    times, max_diff = [], 0.0
+    with threadpool_limits(1):
+        for _ in range(baseline_samples):
+            ind = get_indenter(names[int(rng.integers(len(names)))])
+            pose = ContactPose(x_mm=float(rng.uniform(-5, 5)), y_mm=float(rng.uniform(-5, 5)),
+                               theta_deg=float(rng.uniform(0, 360)), depth_mm=float(rng.uniform(0.4, 1.0)))
+            t0 = time.perf_counter()
+            ref = full.solve(ind, pose)
+            times.append(time.perf_counter() - t0)
+            fast = sim.solve(ind, pose)
+            max_diff = max(max_diff, float(np.abs(ref.displacements_mm - fast.displacements_mm).max()))
+    baseline_rate = 1.0 / float(np.mean(times))
+    operator_bytes = sim.compliance.nbytes + sim.greens.nbytes
+    return {
+        "n_samples": n,
+        "workers": workers,
+        "samples_per_s": rate,
+        "baseline_samples_per_s": baseline_rate,
+        "speedup": rate / baseline_rate,
+        "baseline_max_displacement_difference_mm": max_diff,
+        "operator_prepare_s": prepare_s,
+        "operator_mb": operator_bytes / 1e6,
+        "stored_kb_per_sample": bytes_per_sample / 1e3,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+        "formulation": sim.formulation,
+        "friction": material.friction,
+    }
+
+
+def markdown(result: dict, gpu: dict | None) -> str:
+    from bench.report import machine_line
+
+    lines = [
+        "## Simulator throughput (`tactile-deploy bench sim`)",
+        "",
+        f"CPU: {machine_line()}; {result['workers']} worker processes, {result['n_samples']} random "
+        f"primitive contacts, {result['friction']} contact, {result['formulation']} tets.",
+        "",
+        "| path | samples/s | vs baseline |",
+        "|---|---|---|",
+        f"| per-sample sparse direct solve (baseline, 1 process) | {result['baseline_samples_per_s']:.3f} | 1x |",
+        f"| Green's functions + exact active set (CPU, {result['workers']} processes) | "
+        f"{result['samples_per_s']:.1f} | {result['speedup']:.0f}x |",
+    ]
+    if gpu:
+        lines.append(
+            f"| batched torch path ({gpu.get('device_name', 'GPU')}) | {gpu['samples_per_s']:.0f} | "
+            f"{gpu['samples_per_s'] / result['baseline_samples_per_s']:.0f}x |"
+        )
+    lines += [
+        "",
+        f"Targets: >= 50 samples/s on 2 CPU cores; >= 5,000 samples/s on one H100. "
+        f"Baseline and fast path agree to {result['baseline_max_displacement_difference_mm']:.1e} mm "
+        f"(max nodal displacement difference).",
+        "",
+        f"Memory: operators {result['operator_mb']:.0f} MB (computed once per mesh, nu and friction "
+        f"in {result['operator_prepare_s']:.1f} s or loaded from the cache, shared by the workers), "
+        f"{result['stored_kb_per_sample']:.0f} kB stored per sample (compressed shard), "
+        f"peak RSS of the benchmark process {result['peak_rss_mb']:.0f} MB.",
+    ]
+    if gpu:
+        lines.append(
+            f"GPU: {gpu.get('device_name')} — {gpu.get('n_samples')} samples, batch {gpu.get('batch_size')}, "
+            f"{gpu.get('memory_per_sample_kb', float('nan')):.0f} kB GPU memory per sample in flight "
+            f"(`bench/bench_sim_gpu.py`, results in `bench/results/sim_gpu_h100.json`)."
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=200)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--baseline-samples", type=int, default=2)
+    parser.add_argument("--small", action="store_true", help="quick run (40 samples, 1 baseline sample)")
+    parser.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    if args.small:
+        args.n, args.baseline_samples = 40, 1
+    result = run(args.n, args.workers, args.baseline_samples)
+    gpu_path = ROOT / "bench" / "results" / "sim_gpu_h100.json"
+    gpu = json.loads(gpu_path.read_text()) if gpu_path.exists() else None
+    text = markdown(result, gpu)
+    print(text)
+    if not args.no_write and not args.small:
+        from bench.report import write_section
+
+        write_section("sim", text)
+    return result
+
+
+if __name__ == "__main__":
+    main()

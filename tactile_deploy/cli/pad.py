@@ -1,0 +1,71 @@
+"""``tactile-deploy pad ...`` and ``tactile-deploy indenters ...``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from tactile_deploy.cli.common import console, fail
+
+pad_app = typer.Typer(help="The pad mesh: summary and export.", no_args_is_help=True)
+indenters_app = typer.Typer(help="The indenter library.", no_args_is_help=True)
+
+
+@pad_app.command("info")
+def pad_info(name: str = typer.Option("gelslim", "--pad", help="Shipped pad name.")) -> None:
+    """Print the frozen pad's geometry, node sets, quality figures and content hash."""
+    from tactile_deploy.pad.asset import load_pad, load_pad_card
+
+    try:
+        mesh = load_pad(name)
+    except (KeyError, FileNotFoundError, ValueError) as exc:
+        fail(str(exc))
+    card = load_pad_card(name)
+    g = card.geometry
+    console.print(f"pad {card.name} v{card.version}: {g.shape}, radius {g.radius_mm} mm, thickness {g.thickness_mm} mm")
+    console.print(f"  {card.n_nodes} nodes, {card.n_tets} tets, {len(mesh.edges)} edges")
+    for set_name, nodes in mesh.node_sets.items():
+        console.print(f"  node set {set_name}: {len(nodes)} nodes")
+    console.print(
+        f"  min dihedral {card.min_dihedral_deg:.1f} deg, max dihedral {card.max_dihedral_deg:.1f} deg, "
+        f"worst aspect ratio {card.worst_aspect_ratio:.2f}"
+    )
+    console.print(f"  content hash {card.content_hash}")
+
+
+@pad_app.command("export")
+def pad_export(
+    out: Path = typer.Option(..., "--out", help="Output file: .vtu/.msh/.xdmf (volume) or .stl/.ply/.obj/.glb (surface)."),
+    name: str = typer.Option("gelslim", "--pad", help="Shipped pad name."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
+) -> None:
+    """Export the rest pad mesh (volume via meshio, surface via trimesh)."""
+    from tactile_deploy.pad.asset import load_pad
+    from tactile_deploy.pad.export import SURFACE_SUFFIXES, export_surface, export_volume
+
+    if out.exists() and not overwrite:
+        fail(f"{out} exists; pass --overwrite to replace it")
+    mesh = load_pad(name)
+    try:
+        if out.suffix.lower() in SURFACE_SUFFIXES:
+            export_surface(mesh, out)
+        else:
+            export_volume(mesh, out)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    console.print(f"wrote {out}")
+
+
+@indenters_app.command("list")
+def indenters_list(kind: str = typer.Option(None, "--kind", help="'primitive' or 'novel'.")) -> None:
+    """List the procedural indenter library."""
+    from tactile_deploy.indenters import library_entry, list_indenters
+
+    try:
+        names = list_indenters(kind)
+    except ValueError as exc:
+        fail(str(exc))
+    for name in names:
+        entry = library_entry(name)
+        console.print(f"{name:18s} {entry.kind:9s} {entry.description}")

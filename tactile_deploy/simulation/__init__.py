@@ -1,0 +1,1 @@
+"""One contact or whole datasets: indenter + pose -> FEM -> depth map, mesh, forces."""

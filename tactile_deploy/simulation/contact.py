@@ -1,0 +1,158 @@
+"""Simulate one commanded contact end to end.
+
+Data flow of :func:`simulate_contact`::
+
+    check pose -> ContactSimulator.solve (FEM) -> DepthCamera.render -> ContactSample
+
+The ground-truth depth map ``depth_mm`` is rendered from the deformed 5,380-node pad mesh, so it
+is exactly consistent with ``vertices_mm`` (what a model is trained to predict). That mesh has a
+node spacing of ~1 mm, so contact features finer than ~2 mm are smoothed in it. The rigid
+indenter cannot be penetrated, so ``depth_detail_mm = max(depth_mm, intrusion)`` (the indenter's
+intrusion below the rest surface at each pixel centre) restores those features inside the
+contact: use it where a sharper image of the surface matters (the optics), and say so.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tactile_deploy.camera.depth import DepthCamera
+from tactile_deploy.fem.material import Material
+from tactile_deploy.fem.simulator import ContactSimulator
+from tactile_deploy.indenters import ContactPose, Indenter
+from tactile_deploy.pad.asset import load_pad
+from tactile_deploy.pad.mesh import PadMesh
+
+#: Deepest indentation the linear model is used for, as a fraction of the pad thickness.
+MAX_DEPTH_FRACTION = 0.5
+
+GENERATOR_VERSION = "1"
+
+
+class ContactError(ValueError):
+    """A commanded contact the simulator cannot or should not run (message says why and what to do)."""
+
+
+@dataclass(frozen=True)
+class ContactSample:
+    """One simulated contact.
+
+    depth_mm : (H, W) float32, mm pushed in (image rows: row 0 = largest y)
+    depth_detail_mm : (H, W) float32, mm, with the indenter's non-penetration floor
+    mask : (H, W) bool, pixel on the pad
+    vertices_mm : (n, 3) float32, deformed, sensor frame
+    rest_vertices_mm : (n, 3) float32, sensor frame
+    force_n : float, total normal force (N)
+    contact_mask : (n_plane,) bool, sensing nodes in contact
+    pressure_kpa : (n_plane,) float32
+    metadata : dict (indenter, pose, material, mesh hash, generator version)
+    """
+
+    depth_mm: np.ndarray
+    depth_detail_mm: np.ndarray
+    mask: np.ndarray
+    vertices_mm: np.ndarray
+    rest_vertices_mm: np.ndarray
+    force_n: float
+    contact_mask: np.ndarray
+    pressure_kpa: np.ndarray
+    metadata: dict = field(default_factory=dict)
+
+    def npz_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays of the ``simulate --out FILE.npz`` format (metadata as a JSON string)."""
+        return {
+            "depth": self.depth_mm,
+            "depth_detail": self.depth_detail_mm,
+            "mask": self.mask,
+            "vertices": self.vertices_mm,
+            "rest_vertices": self.rest_vertices_mm,
+            "force_n": np.float32(self.force_n),
+            "contact_mask": self.contact_mask,
+            "pressure_kpa": self.pressure_kpa,
+            "metadata": np.array(json.dumps(self.metadata)),
+        }
+
+
+@functools.lru_cache(maxsize=8)
+def get_simulator(material: Material, pad: str = "gelslim") -> ContactSimulator:
+    """A cached simulator of the shipped pad for ``material`` (operators load from disk cache)."""
+    return ContactSimulator(load_pad(pad), material)
+
+
+@functools.lru_cache(maxsize=4)
+def get_camera(half_extent_mm: float = 17.5, resolution: int = 128) -> DepthCamera:
+    return DepthCamera(half_extent_mm, resolution)
+
+
+def check_pose(mesh: PadMesh, indenter: Indenter, pose: ContactPose) -> np.ndarray:
+    """Validate a commanded contact; return the intrusion at the sensing nodes (mm).
+
+    Raises :class:`ContactError` for depths the pad cannot take and for poses off the pad.
+    """
+    g = mesh.geometry
+    max_depth = MAX_DEPTH_FRACTION * g.thickness_mm
+    if not 0.0 < pose.depth_mm <= max_depth:
+        raise ContactError(
+            f"depth_mm={pose.depth_mm} is outside (0, {max_depth:g}] mm: the linear pad model of "
+            f"this {g.thickness_mm:g} mm gel is used up to {MAX_DEPTH_FRACTION:.0%} of its "
+            f"thickness; command a depth in that range"
+        )
+    if not g.contains_xy(pose.x_mm, pose.y_mm):
+        raise ContactError(
+            f"pose (x_mm={pose.x_mm}, y_mm={pose.y_mm}) is off the pad (radius "
+            f"{g.half_extent_mm:g} mm around the origin of the sensor frame); move it onto the pad"
+        )
+    xy = mesh.vertices[mesh.sensing_nodes, :2]
+    delta = np.asarray(indenter.intrusion_mm(xy, pose), dtype=np.float64)
+    if not np.any(delta > 0):
+        raise ContactError(
+            f"indenter {indenter.name!r} at (x_mm={pose.x_mm}, y_mm={pose.y_mm}, "
+            f"depth_mm={pose.depth_mm}) does not reach any sensing node: its tip is off the pad "
+            f"or narrower than the mesh spacing; move it onto the pad or press deeper"
+        )
+    return delta
+
+
+def simulate_contact(
+    indenter: Indenter,
+    pose: ContactPose,
+    material: Material = Material(),
+    camera: DepthCamera | None = None,
+    simulator: ContactSimulator | None = None,
+) -> ContactSample:
+    """Simulate ``indenter`` pressed at ``pose`` into the shipped GelSlim pad."""
+    sim = simulator or get_simulator(material)
+    cam = camera or get_camera()
+    mesh = sim.mesh
+    check_pose(mesh, indenter, pose)
+    result = sim.solve(indenter, pose)
+    image = cam.render(mesh, result.vertices_mm)
+    intrusion = indenter.intrusion_mm(cam.pixel_centres_mm().reshape(-1, 2), pose)
+    floor = np.maximum(intrusion.reshape(image.depth_mm.shape), 0.0)
+    detail = np.where(image.mask, np.maximum(image.depth_mm, floor), 0.0).astype(np.float32)
+    return ContactSample(
+        depth_mm=image.depth_mm,
+        depth_detail_mm=detail,
+        mask=image.mask,
+        vertices_mm=result.vertices_mm.astype(np.float32),
+        rest_vertices_mm=mesh.vertices.astype(np.float32),
+        force_n=result.force_n,
+        contact_mask=result.contact_mask,
+        pressure_kpa=result.pressure_kpa.astype(np.float32),
+        metadata={
+            "indenter": indenter.name,
+            "indenter_kind": indenter.kind,
+            "pose": pose.model_dump(),
+            "material": sim.material.model_dump(),
+            "formulation": sim.formulation,
+            "mesh_hash": mesh.content_hash,
+            "n_nodes": mesh.n_nodes,
+            "generator_version": GENERATOR_VERSION,
+            "units": {"depth": "mm", "vertices": "mm", "force_n": "N", "pressure_kpa": "kPa"},
+            "frame": "sensor: origin at the centre of the sensing surface, z up out of the gel",
+        },
+    )
