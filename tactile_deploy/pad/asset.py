@@ -42,12 +42,13 @@ class PadCard(BaseModel):
     worst_aspect_ratio: float = Field(description="Largest circumradius / (3 inradius).")
 
 
-def asset_paths(name: str, version: int, directory: Path = ASSET_DIR) -> tuple[Path, Path]:
+def asset_paths(name: str, version: int, directory: Path | None = None) -> tuple[Path, Path]:
+    directory = ASSET_DIR if directory is None else directory
     stem = f"{name}_v{version}"
     return directory / f"{stem}.npz", directory / f"{stem}.json"
 
 
-def freeze_pad(mesh: PadMesh, name: str, version: int, directory: Path = ASSET_DIR) -> PadCard:
+def freeze_pad(mesh: PadMesh, name: str, version: int, directory: Path | None = None) -> PadCard:
     """Write ``mesh`` as a frozen asset (atomic) and return its card."""
     q = quality_report(mesh.vertices, mesh.tets)
     if not q.ok:

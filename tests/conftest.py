@@ -1,0 +1,53 @@
+"""Shared fixtures: the shipped pad, a private operator cache, the shared data folder."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """``../shared/data`` beside the checkout; fails (does not skip) when it is missing."""
+    if not SHARED_DATA.is_dir():
+        pytest.fail(
+            f"shared data folder {SHARED_DATA} not found: the tests need ../shared/data beside "
+            f"the repository (real ball presses and indenter STLs)"
+        )
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_cache(tmp_path_factory):
+    """Operators and envelope grids go to a fresh cache: tests never read a user's cache."""
+    folder = tmp_path_factory.mktemp("tactile_deploy_cache")
+    old = os.environ.get("TACTILE_DEPLOY_CACHE_DIR")
+    os.environ["TACTILE_DEPLOY_CACHE_DIR"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("TACTILE_DEPLOY_CACHE_DIR", None)
+    else:
+        os.environ["TACTILE_DEPLOY_CACHE_DIR"] = old
+
+
+@pytest.fixture(scope="session")
+def pad():
+    from tactile_deploy.pad.asset import load_pad
+
+    return load_pad()
+
+
+@pytest.fixture(scope="session")
+def pad_sim(pad):
+    """The shipped pad, nu = 0.48, frictionless, surface operators computed once per session."""
+    from tactile_deploy.simulation.contact import get_simulator
+    from tactile_deploy.fem.material import Material
+
+    sim = get_simulator(Material(nu=0.48))
+    sim.prepare()
+    return sim
