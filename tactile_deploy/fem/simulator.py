@@ -74,6 +74,35 @@ class ContactResult:
         return self.rest_vertices_mm + self.displacements_mm
 
 
+def surface_contact_forces(C: np.ndarray, delta: np.ndarray, block: int) -> np.ndarray:
+    """Exact contact on a surface compliance: forces (k, b) N at E = 1 for intrusions ``delta`` (k,) mm.
+
+    Solves on the candidate nodes (intrusion above minus the largest intrusion: the surface
+    cannot sink further than that), then checks every other node for penetration and repeats
+    with the offenders added until none penetrates.
+    """
+    b = block
+    forces = np.zeros((len(delta), b))
+    if not np.any(delta > 0):
+        return forces
+    reach = float(np.max(delta))
+    cand = np.flatnonzero(delta > -reach)
+    for _ in range(20):
+        dofs = (cand[:, None] * b + np.arange(b)).ravel()
+        sol = solve_contact(C[np.ix_(dofs, dofs)], delta[cand], b)
+        forces[:] = 0.0
+        forces[cand] = sol.forces
+        active = cand[sol.active]
+        adofs = (active[:, None] * b + np.arange(b)).ravel()
+        u_normal = C[b - 1 :: b][:, adofs] @ forces[active].ravel()
+        penetrating = np.flatnonzero(-delta - u_normal < -1e-9 * reach)
+        missing = np.setdiff1d(penetrating, cand)
+        if len(missing) == 0:
+            return forces
+        cand = np.union1d(cand, missing)
+    raise RuntimeError("contact candidate set did not settle")
+
+
 class ContactSimulator:
     """Linear-elastic pad + rigid indenter, frictionless or sticking contact.
 
@@ -275,33 +304,11 @@ class ContactSimulator:
         G = self.greens
         return np.tensordot(flat[nz], G[nz], axes=1).astype(np.float64)
 
-    def _candidates(self, delta: np.ndarray) -> np.ndarray:
-        reach = max(float(np.max(delta, initial=0.0)), 0.0)
-        return np.flatnonzero(delta > -reach)
-
     def surface_forces(self, delta: np.ndarray) -> np.ndarray:
         """Contact forces at E = 1, (k, b) N, for intrusions ``delta`` (k,) at ``contact_nodes``."""
-        b = self.block
-        forces = np.zeros((len(delta), b))
         if not np.any(delta > 0):
-            return forces
-        C = self.compliance
-        cand = self._candidates(delta)
-        scale = max(float(delta.max()), 1e-12)
-        for _ in range(20):
-            dofs = (cand[:, None] * b + np.arange(b)).ravel()
-            sol = solve_contact(C[np.ix_(dofs, dofs)], delta[cand], b)
-            forces[:] = 0.0
-            forces[cand] = sol.forces
-            active = cand[sol.active]
-            adofs = (active[:, None] * b + np.arange(b)).ravel()
-            u_normal = C[b - 1 :: b][:, adofs] @ forces[active].ravel()
-            penetrating = np.flatnonzero(-delta - u_normal < -1e-9 * scale)
-            missing = np.setdiff1d(penetrating, cand)
-            if len(missing) == 0:
-                return forces
-            cand = np.union1d(cand, missing)
-        raise RuntimeError("contact candidate set did not settle")
+            return np.zeros((len(delta), self.block))
+        return surface_contact_forces(self.compliance, delta, self.block)
 
     def _full_solve(self, delta: np.ndarray):
         """Reference: active-set iteration on the full sparse system (refactor per step)."""
