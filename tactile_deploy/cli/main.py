@@ -13,7 +13,7 @@ from importlib.metadata import entry_points
 
 import typer
 
-from tactile_deploy.cli import bench, pad, simulate
+from tactile_deploy.cli import bench, pad, plugins, run, simulate
 
 app = typer.Typer(
     name="tactile-deploy",
@@ -26,6 +26,8 @@ app.command("simulate")(simulate.simulate_command)
 app.add_typer(pad.pad_app, name="pad")
 app.add_typer(pad.indenters_app, name="indenters")
 app.add_typer(bench.bench_app, name="bench")
+app.command("run")(run.run_command)
+app.add_typer(plugins.plugins_app, name="plugins")
 
 
 def _register_entry_points() -> None:

@@ -1,0 +1,159 @@
+"""``tactile-deploy run --sensor NAME [--source ...] [--out DIR] [--every N] [--publish ADDR] [--view]``."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+from pathlib import Path
+
+import typer
+
+from tactile_deploy.cli.common import console, err_console, fail
+
+
+def _ask(question: str) -> bool:
+    if not (sys.stdin.isatty() and sys.stdout.isatty()):
+        return False
+    import questionary
+
+    return bool(questionary.confirm(question, default=False).ask())
+
+
+def run_command(
+    sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder "
+                               "(`tactile-deploy plugins list`)."),
+    source: str | None = typer.Option(
+        None, "--source", help="Frame source: demo | camera index (0) or /dev/videoN | video file "
+        "| image folder | recording.npz | virtual[:NAME]. Default: the plugin's default source "
+        "(the shipped plugins: their demo clip)."),
+    out: Path | None = typer.Option(None, "--out", help="Folder for meshes, frames.csv, "
+                                       "run.json (and previews with --view)."),
+    every: int = typer.Option(1, "--every", min=1, help="Write the mesh of every N-th frame."),
+    formats: str = typer.Option("ply,vtu", "--format", help="Mesh files to write: ply, obj, glb "
+                                "(surface), vtu (volume); comma-separated."),
+    publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
+                                          "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
+    view: bool = typer.Option(False, "--view", help="Write preview.png (depth map and coloured "
+                              "mesh) about once a second."),
+    forces: bool = typer.Option(True, "--forces/--no-forces", help="Estimate contact forces "
+                                "(inverse FEM; the first run computes the pad stiffness, ~5 s)."),
+    max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
+    loop: bool = typer.Option(False, "--loop", help="Replay a recorded source endlessly (Ctrl-C ends)."),
+    realtime: bool = typer.Option(False, "--realtime", help="Play recordings at their recorded pace."),
+    threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads."),
+    providers: str = typer.Option("auto", "--providers", help="auto | cpu | cuda."),
+    family_model: bool = typer.Option(False, "--family-model", help="Use the family model even "
+                                      "when the plugin has an adapted one."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write into a non-empty --out "
+                                   "folder without asking."),
+    colour_max_mm: float = typer.Option(1.0, "--colour-max-mm", min=1e-3, help="Displacement "
+                                        "(mm) at the top of the colour scale."),
+) -> None:
+    """Turn a sensor's frames into pad meshes live: prints fps and latency; Ctrl-C ends cleanly."""
+    from rich.logging import RichHandler
+
+    logging.basicConfig(level=logging.WARNING, format="%(message)s",
+                        handlers=[RichHandler(console=err_console, show_path=False)])
+    from tactile_deploy.runtime.forces import ForceEstimator
+    from tactile_deploy.runtime.pipeline import FrameError
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+    from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
+    from tactile_deploy.runtime.run import (
+        RunError,
+        Runner,
+        RunOptions,
+        default_preview_dir,
+        prepare_out_dir,
+        summary_text,
+    )
+    from tactile_deploy.runtime.sources.base import SourceError
+    from tactile_deploy.runtime.sources.config import SourceSpecError, parse_source
+    from tactile_deploy.runtime.sources.factory import make_source
+    from tactile_deploy.runtime.writers import parse_formats
+
+    try:
+        fmts = parse_formats(formats)
+    except ValueError as e:
+        fail(f"--format: {e}")
+    try:
+        plugin = SensorPlugin.load(sensor)
+        if source is None:
+            config, from_manifest = plugin.manifest.default_source, True
+            if loop and hasattr(config, "loop"):
+                config = config.model_copy(update={"loop": True})
+        else:
+            config, from_manifest = parse_source(source, loop=loop), False
+        predictor = MeshPredictor.from_plugin(plugin, adapted=False if family_model else None,
+                                              threads=threads, providers=providers)
+        out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
+        preview_dir = None
+        if view and out_dir is None:
+            preview_dir = prepare_out_dir(default_preview_dir())
+        estimator = None
+        if forces:
+            from tactile_deploy.cli.common import progress_bar
+            from tactile_deploy.fem.simulator import cache_dir
+
+            n = len(predictor.topology.sensing_nodes)
+            if not any(cache_dir().glob("surface_stiffness_*.npy")):
+                err_console.print(f"computing the pad's surface stiffness once (cached in "
+                                  f"{cache_dir()})")
+                with progress_bar("surface stiffness", n, "columns") as advance:
+                    estimator = ForceEstimator.for_plugin(plugin, progress=advance)
+            else:
+                estimator = ForceEstimator.for_plugin(plugin)
+        src = make_source(config, plugin, from_manifest=from_manifest)
+        publisher = None
+        if publish:
+            from tactile_deploy.runtime.publish import MeshPublisher
+
+            publisher = MeshPublisher(publish, plugin.name, predictor.topology)
+            err_console.print(f"publishing meshes on {publisher.endpoint} (topics mesh/{plugin.name}, "
+                              f"topology/{plugin.name})")
+    except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
+            FrameError, FileNotFoundError) as e:
+        fail(str(e))
+    except Exception as e:  # e.g. the publisher's bind error
+        from tactile_deploy.runtime.publish import PublishError
+
+        if isinstance(e, PublishError):
+            fail(str(e))
+        raise
+
+    options = RunOptions(out_dir=out_dir, every=every, formats=fmts, publish=publish, view=view,
+                         preview_dir=preview_dir or out_dir, forces=forces,
+                         max_frames=max_frames, realtime=realtime, colour_max_mm=colour_max_mm)
+    live = err_console.is_terminal
+
+    def status(line: str) -> None:
+        if live:
+            err_console.file.write("\r" + line[: err_console.width - 1].ljust(err_console.width - 1))
+            err_console.file.flush()
+
+    runner = Runner(predictor, src, options, forces=estimator, publisher=publisher,
+                    status=status, sensor=plugin.name)
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    err_console.print(f"running {plugin.name} on {src.name} with {predictor.providers[0]} "
+                      f"(Ctrl-C to stop)")
+    try:
+        summary = runner.run()
+    except (SourceError, RunError) as e:
+        if live:
+            err_console.file.write("\n")
+        fail(str(e), code=1)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if live:
+        err_console.file.write("\n")
+    console.print(summary_text(summary))
+    if out_dir is not None:
+        console.print(f"outputs in {out_dir}")
+    elif preview_dir is not None:
+        console.print(f"preview in {preview_dir / 'preview.png'}")
+    if summary.write_error:
+        raise typer.Exit(1)
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt

@@ -1,0 +1,2 @@
+"""Frame sources (LeRobot-style): configs in :mod:`.config` (no hardware imports), one module
+per kind, and :func:`.factory.make_source`."""

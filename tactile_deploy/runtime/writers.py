@@ -1,0 +1,125 @@
+"""Writing predicted meshes to files, on a background thread so the sensor loop never waits.
+
+Formats (chosen per run): ``ply``, ``obj``, ``glb`` -- the outer surface through trimesh, vertex
+colours by displacement magnitude on a fixed scale, and (PLY, GLB) the displacement vector as
+per-vertex attributes ``disp_x``/``disp_y``/``disp_z`` (mm); ``vtu`` -- the tet volume through
+meshio with point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. File names
+``mesh_<frame index, 6 digits>.<ext>``; every file is written atomically. Units mm, sensor frame.
+
+If writing fails (disk full, folder removed, permissions changed), the error is logged once,
+further writes are skipped, and :attr:`MeshWriter.error` holds the message; the loop goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from tactile_deploy.atomic import atomic_path
+from tactile_deploy.runtime.preview import colourise
+
+log = logging.getLogger(__name__)
+
+SURFACE_FORMATS = ("ply", "obj", "glb")
+VOLUME_FORMATS = ("vtu",)
+FORMATS = SURFACE_FORMATS + VOLUME_FORMATS
+
+
+def parse_formats(text: str) -> tuple[str, ...]:
+    """``"ply,vtu"`` -> ("ply", "vtu"); raises ValueError naming unknown formats."""
+    fmts = tuple(dict.fromkeys(f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()))
+    bad = [f for f in fmts if f not in FORMATS]
+    if bad or not fmts:
+        raise ValueError(f"unknown mesh format(s) {bad or [text]}: choose from {', '.join(FORMATS)}")
+    return fmts
+
+
+def write_surface(path: Path, topology, vertices_mm: np.ndarray, max_mm: float = 1.0) -> None:
+    import trimesh
+
+    v = np.asarray(vertices_mm, np.float64)
+    disp = v - topology.rest_vertices_mm
+    mag = np.linalg.norm(disp, axis=1)
+    mesh = trimesh.Trimesh(v, topology.surface_faces, process=False)
+    rgb = colourise(mag, max_mm)
+    mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(v), 1), 255, np.uint8)], 1)
+    if path.suffix in (".ply", ".glb"):
+        mesh.vertex_attributes["disp_x"] = disp[:, 0].astype(np.float32)
+        mesh.vertex_attributes["disp_y"] = disp[:, 1].astype(np.float32)
+        mesh.vertex_attributes["disp_z"] = disp[:, 2].astype(np.float32)
+    with atomic_path(path) as tmp:
+        mesh.export(tmp)
+
+
+def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
+    import meshio
+
+    v = np.asarray(vertices_mm, np.float64)
+    disp = v - topology.rest_vertices_mm
+    out = meshio.Mesh(v, [("tetra", topology.tets.astype(np.int64))],
+                      point_data={"displacement_mm": disp,
+                                  "displacement_magnitude_mm": np.linalg.norm(disp, axis=1)})
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, out)
+
+
+class MeshWriter:
+    """Background writer of meshes into ``folder`` (module docstring).
+
+    queue_size : meshes waiting at most; when the disk is slower than the sensor, further meshes
+        are skipped (counted in ``skipped``) instead of growing memory.
+    """
+
+    def __init__(self, folder: Path, topology, formats=("ply", "vtu"), max_mm: float = 1.0,
+                 queue_size: int = 8):
+        self.folder = Path(folder)
+        self.topology = topology
+        self.formats = tuple(formats)
+        self.max_mm = float(max_mm)
+        self.written = 0
+        self.skipped = 0
+        self.error: str | None = None
+        self._q: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._thread = threading.Thread(target=self._work, name="mesh writer", daemon=True)
+        self._thread.start()
+
+    def submit(self, index: int, vertices_mm: np.ndarray) -> bool:
+        """Queue a mesh; False when it was skipped (queue full, or writing has failed)."""
+        if self.error is not None:
+            return False
+        try:
+            self._q.put_nowait((int(index), np.array(vertices_mm, np.float32)))
+            return True
+        except queue.Full:
+            self.skipped += 1
+            return False
+
+    def _work(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            index, v = item
+            if self.error is not None:
+                continue
+            try:
+                for fmt in self.formats:
+                    path = self.folder / f"mesh_{index:06d}.{fmt}"
+                    if fmt in VOLUME_FORMATS:
+                        write_volume(path, self.topology, v)
+                    else:
+                        write_surface(path, self.topology, v, self.max_mm)
+                self.written += 1
+            except Exception as e:  # noqa: BLE001 - any failure stops writing, the loop goes on
+                self.error = (f"writing meshes into {self.folder} failed at frame {index}: "
+                              f"{type(e).__name__}: {e}; no further meshes are written")
+                log.error(self.error)
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Write what is queued, then stop the thread."""
+        self._q.put(None)
+        self._thread.join(timeout=timeout_s)
