@@ -1,0 +1,129 @@
+"""Command line: ``calibrate shading`` (fit a shading model) and ``depth`` (apply one).
+
+    tactile-deploy calibrate shading --reference REF.png --presses DIR [--annotations CSV]
+        --ball-radius-mm R --mm-per-px S --out shading.npz [--circles-out CSV] [--folds K]
+    tactile-deploy depth --shading shading.npz --reference REF.png FRAME.png... --out DIR
+
+``shading_app`` holds the ``shading`` command (add it to the ``calibrate`` group);
+``depth_command`` is a plain function (register it as ``depth``). Heavy imports happen inside
+the commands so that ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+shading_app = typer.Typer(help="Marble shading model: colour -> surface gradient -> depth.")
+
+
+def _fail(msg: str) -> None:
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(code=2)
+
+
+def write_circles_csv(path: Path, names, circles) -> None:
+    """Write circles (px) as ``img_names,center_x,center_y,radius`` (atomic)."""
+    from tactile_deploy.atomic import write_text
+
+    lines = ["img_names,center_x,center_y,radius"]
+    lines += [f"{n},{c[0]:.2f},{c[1]:.2f},{c[2]:.2f}" for n, c in zip(names, circles)]
+    write_text(path, "\n".join(lines) + "\n")
+
+
+@shading_app.command("shading")
+def shading_command(
+    reference: Path = typer.Option(..., help="Frame of the sensor with nothing touching it."),
+    presses: Path = typer.Option(..., help="Folder of ball-press frames (one press each)."),
+    ball_radius_mm: float = typer.Option(..., help="Radius of the calibration ball, mm."),
+    mm_per_px: float = typer.Option(..., help="Sensor-plane scale, mm per pixel."),
+    out: Path = typer.Option(..., help="Shading model to write (.npz)."),
+    annotations: Optional[Path] = typer.Option(
+        None, help="CSV img_names,center_x,center_y,radius (px); without it circles are "
+        "detected."),
+    circles_out: Optional[Path] = typer.Option(
+        None, help="Write the circles used (refined centres, measured contact radii) as CSV: "
+        "correct them by hand and pass them back with --annotations."),
+    folds: int = typer.Option(0, help="Also cross-validate with this many folds (0: no) and "
+                              "print held-out shape error and fitted radius."),
+) -> None:
+    """Fit a shading model (position-dependent colour LUT) to ball presses and save it."""
+    import numpy as np
+
+    from tactile_deploy.imaging.shading import DepthFromShading, save_shading
+
+    from .circles import ContactNotFoundError
+    from .evaluate import cross_validate, markdown_table, summarise
+    from .fit import fit_shading
+    from .presses import PressDataError, load_presses
+
+    if ball_radius_mm <= 0 or mm_per_px <= 0:
+        _fail(f"--ball-radius-mm and --mm-per-px must be > 0, got {ball_radius_mm} and "
+              f"{mm_per_px}")
+    if out.suffix != ".npz":
+        _fail(f"--out must end in .npz, got {out}")
+    if not out.parent.exists():
+        _fail(f"--out: folder {out.parent} does not exist")
+    try:
+        data = load_presses(reference, presses, annotations)
+        fit = fit_shading(data, ball_radius_mm, mm_per_px)
+    except (PressDataError, ContactNotFoundError, ValueError) as e:
+        _fail(str(e))
+    save_shading(fit.model, out)
+    h = fit.model.header
+    typer.echo(f"wrote {out}: {len(data)} presses, {h.n_slots} colour slots on a "
+               f"{h.node_grid_shape[0]}x{h.node_grid_shape[1]} node grid, depth weights "
+               f"x {h.poisson_weight_x:g} / y {h.poisson_weight_y:g}; in-sample sphere residual "
+               f"{h.fit_metrics['in_sample_sphere_rms_um']:.1f} um")
+    shift = np.hypot(*(fit.circles[:, :2] - fit.circles_input[:, :2]).T)
+    typer.echo(f"circles: centres moved by {shift.mean():.1f} px on average (max "
+               f"{shift.max():.1f} px); contact radii {fit.circles[:, 2].min():.1f}-"
+               f"{fit.circles[:, 2].max():.1f} px")
+    if circles_out is not None:
+        write_circles_csv(circles_out, data.names, fit.circles)
+        typer.echo(f"wrote {circles_out}")
+    if folds:
+        if folds < 2 or folds > len(data):
+            _fail(f"--folds must lie in [2, {len(data)}], got {folds}")
+        if data.circles is None:
+            data.circles = fit.circles_input
+
+        def fitter(train):
+            m = fit_shading(train, ball_radius_mm, mm_per_px).model
+            return DepthFromShading(m, train.reference)
+
+        res = cross_validate(data, fitter, ball_radius_mm, mm_per_px, folds)
+        typer.echo(markdown_table({"held-out presses": summarise(res)}))
+
+
+def depth_command(
+    frames: List[Path] = typer.Argument(..., help="RGB frames to reconstruct."),
+    shading: Path = typer.Option(..., help="Shading model (.npz) from `calibrate shading`."),
+    reference: Path = typer.Option(..., help="Frame of the sensor with nothing touching it."),
+    out: Path = typer.Option(..., help="Folder for the depth maps (<frame name>.npy, mm)."),
+) -> None:
+    """Depth maps (mm, positive into the gel, the frame's resolution) of frames, as .npy."""
+    import numpy as np
+
+    from tactile_deploy.atomic import atomic_path
+    from tactile_deploy.imaging.shading import DepthFromShading, ShadingModelError, load_shading
+
+    from .presses import PressDataError, read_rgb
+
+    try:
+        model = load_shading(shading)
+        runner = DepthFromShading(model, read_rgb(reference))
+    except (FileNotFoundError, ShadingModelError, PressDataError) as e:
+        _fail(str(e))
+    out.mkdir(parents=True, exist_ok=True)
+    for path in frames:
+        try:
+            depth = runner.depth(read_rgb(path))
+        except (PressDataError, ShadingModelError) as e:
+            _fail(f"{path}: {e}")
+        target = out / f"{path.stem}.npy"
+        with atomic_path(target) as tmp, open(tmp, "wb") as f:
+            np.save(f, depth.astype(np.float32))
+        typer.echo(f"{target}: max depth {float(depth.max()):.3f} mm")
