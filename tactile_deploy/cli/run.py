@@ -37,7 +37,7 @@ def run_command(
     view: bool = typer.Option(False, "--view", help="Write preview.png (depth map and coloured "
                               "mesh) about once a second."),
     forces: bool = typer.Option(True, "--forces/--no-forces", help="Estimate contact forces "
-                                "(inverse FEM; the first run computes the pad stiffness, ~5 s)."),
+                                "(inverse FEM; the first run computes the pad stiffness once, 15-30 s)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
     loop: bool = typer.Option(False, "--loop", help="Replay a recorded source endlessly (Ctrl-C ends)."),
     realtime: bool = typer.Option(False, "--realtime", help="Play recordings at their recorded pace."),
@@ -93,16 +93,19 @@ def run_command(
         estimator = None
         if forces:
             from tactile_deploy.cli.common import progress_bar
-            from tactile_deploy.fem.simulator import cache_dir
+            from tactile_deploy.pad.asset import load_pad
+            from tactile_deploy.runtime.forces import SurfaceStiffness
 
-            n = len(predictor.topology.sensing_nodes)
-            if not any(cache_dir().glob("surface_stiffness_*.npy")):
-                err_console.print(f"computing the pad's surface stiffness once (cached in "
-                                  f"{cache_dir()})")
+            fam, mat = plugin.manifest.family, plugin.manifest.material
+            path = SurfaceStiffness.cache_path(load_pad(fam.pad, fam.pad_version), mat.nu)
+            if path.is_file():
+                estimator = ForceEstimator.for_plugin(plugin)
+            else:
+                n = len(predictor.topology.sensing_nodes)
+                err_console.print(f"computing the pad's surface stiffness for nu={mat.nu} once "
+                                  f"(cached in {path.parent}); --no-forces skips it")
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
-            else:
-                estimator = ForceEstimator.for_plugin(plugin)
         src = make_source(config, plugin, from_manifest=from_manifest)
         publisher = None
         if publish:

@@ -21,9 +21,12 @@ is a smooth weighted sum of the displacements (weights ``K_s 1``). ``clip_tensio
 tensile (negative) pressures to zero, as a frictionless contact cannot pull.
 
 Cost: K_s is dense (1,076 x 1,076 for the GelSlim pad). It is computed on first use from the
-sparse FEM stiffness (numpy assembly, sparse Cholesky; no warp, about 5 s on two cores) and cached
-in the operator cache folder (``$TACTILE_DEPLOY_CACHE_DIR`` or ``~/.cache/tactile-deploy``); then a
-frame costs one matrix-vector product (~0.2 ms).
+sparse FEM stiffness (numpy assembly, sparse Cholesky; no warp; 15-30 s on two cores) and cached
+in the operator cache folder (``$TACTILE_DEPLOY_CACHE_DIR`` or ``~/.cache/tactile-deploy``), or
+taken from the contact simulator's cached operators when ``tactile-deploy simulate`` already
+computed them for the same mesh and Poisson ratio; then a
+frame costs one dot product for the total force and, when the per-node pressure is wanted, one
+dense matrix-vector product (9 MB of float64: about 1-2 ms on one core, memory bound).
 """
 
 from __future__ import annotations
@@ -74,16 +77,33 @@ class SurfaceStiffness:
                              "contact; build the simulator with friction='frictionless'")
         return cls.from_compliance(sim.compliance, sim.contact_nodes, sim.operator_key)
 
+    @staticmethod
+    def _simulator(mesh, nu: float):
+        from tactile_deploy.fem.material import Material
+        from tactile_deploy.fem.simulator import ContactSimulator
+
+        return ContactSimulator(mesh, Material(nu=nu), assembly="numpy", use_cache=False)
+
     @classmethod
-    def for_pad(cls, mesh, nu: float, use_cache: bool = True, progress=None) -> SurfaceStiffness:
+    def cache_path(cls, mesh, nu: float):
+        """Where :meth:`for_pad` caches the stiffness of ``mesh`` at Poisson ratio ``nu``."""
+        from tactile_deploy.fem.simulator import cache_dir
+
+        sim = cls._simulator(mesh, nu)
+        key = hashlib.sha256(f"v{_CACHE_VERSION}|{sim.operator_key}".encode()).hexdigest()[:20]
+        return cache_dir() / f"surface_stiffness_{key}.npy"
+
+    @classmethod
+    def for_pad(cls, mesh, nu: float, use_cache: bool = True, progress=None) -> "SurfaceStiffness":
         """The stiffness of ``mesh`` for Poisson ratio ``nu`` (cached on disk after the first
-        computation, which solves the sparse FEM system once per sensing node)."""
+        computation, which solves the sparse FEM system once per sensing node; ``progress(n)``
+        is called as columns are done)."""
         from tactile_deploy.fem.material import Material
         from tactile_deploy.fem.simulator import ContactSimulator, cache_dir
 
-        sim = ContactSimulator(mesh, Material(nu=nu), assembly="numpy", use_cache=False)
-        key = hashlib.sha256(f"v{_CACHE_VERSION}|{sim.operator_key}".encode()).hexdigest()[:20]
-        path = cache_dir() / f"surface_stiffness_{key}.npy"
+        sim = cls._simulator(mesh, nu)
+        path = cls.cache_path(mesh, nu)
+        key = path.stem.rsplit("_", 1)[1]
         k = len(sim.contact_nodes)
         if use_cache and path.is_file():
             try:
@@ -93,7 +113,12 @@ class SurfaceStiffness:
                 log.warning("cached surface stiffness %s has the wrong shape; recomputing", path)
             except (OSError, ValueError) as e:
                 log.warning("cached surface stiffness %s is unreadable (%s); recomputing", path, e)
-        stiff = cls.from_compliance(_z_compliance(sim, progress), sim.contact_nodes, key)
+        if (cache_dir() / f"surface_{sim.operator_key}" / "C.npy").is_file():
+            # the contact simulator already computed this compliance (same mesh, nu, supports)
+            compliance = ContactSimulator(mesh, Material(nu=nu), assembly="numpy").compliance
+        else:
+            compliance = _z_compliance(sim, progress)
+        stiff = cls.from_compliance(compliance, sim.contact_nodes, key)
         if use_cache:
             from tactile_deploy.atomic import atomic_path
 
@@ -150,6 +175,7 @@ class ForceEstimator:
         self._rest_z = np.asarray(rest_vertices_mm, np.float64)[self.nodes, 2]
         self._n_nodes = len(rest_vertices_mm)
         self._k_e = stiffness.matrix * self.E_mpa            # N/mm at this E
+        self._row_sums = self._k_e.sum(axis=0)               # total force per unit u_z, N/mm
         self._inv_area_kpa = 1e3 / np.asarray(areas_mm2, np.float64)
 
     @classmethod
@@ -168,13 +194,24 @@ class ForceEstimator:
         return cls.for_pad(m.material.E_mpa, m.material.nu, m.family.pad, m.family.pad_version,
                            progress)
 
-    def estimate(self, vertices_mm: np.ndarray, clip_tension: bool = False) -> ContactForces:
-        """Forces of a mesh (n, 3) or a batch (N, n, 3) of deformed vertices, mm, sensor frame."""
+    def estimate(self, vertices_mm: np.ndarray, clip_tension: bool = False,
+                 pressure: bool = True) -> ContactForces:
+        """Forces of a mesh (n, 3) or a batch (N, n, 3) of deformed vertices, mm, sensor frame.
+
+        ``pressure=False`` computes only the total force (a dot product with the precomputed
+        row sums of the stiffness, ~1,000 x cheaper than the per-node forces; the per-node
+        arrays are then empty). ``clip_tension`` needs the per-node forces (it implies
+        ``pressure=True``).
+        """
         v = np.asarray(vertices_mm)
         if v.shape[-2:] != (self._n_nodes, 3) or v.ndim not in (2, 3):
             raise ValueError(f"vertices_mm must be ({self._n_nodes}, 3) or (N, {self._n_nodes}, "
                              f"3), got {v.shape}")
         uz = v[..., self.nodes, 2].astype(np.float64) - self._rest_z     # (..., k) mm
+        if not (pressure or clip_tension):
+            total = -(uz @ self._row_sums)
+            empty = np.zeros(uz.shape[:-1] + (0,), np.float32)
+            return ContactForces(total if uz.ndim > 1 else float(total), empty, empty)
         fn = -(uz @ self._k_e)                                          # K symmetric; (..., k) N
         if clip_tension:
             fn = np.maximum(fn, 0.0)

@@ -66,7 +66,8 @@ class MeshRenderer:
         mag = np.linalg.norm(v - self.rest, axis=1)
         pts = self._view(v)
         tri = pts[self.faces]
-        r = rasterize_triangles(tri, self.grid, reduce="max", return_barycentric=True)
+        r = rasterize_triangles(tri, self.grid, reduce="max", return_face_index=True,
+                                return_barycentric=True)
         img = np.full((self.size, self.size, 3), 245, np.uint8)
         cov = r.covered
         if cov.any():

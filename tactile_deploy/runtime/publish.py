@@ -82,7 +82,6 @@ class MeshPublisher:
         self.endpoint = self._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
         self._zmq = zmq
         self.seq = 0
-        self.dropped = 0
         self._last_topology = -1e18
         self._topic_mesh = f"mesh/{sensor}".encode()
         self._topic_topo = f"topology/{sensor}".encode()
@@ -121,10 +120,9 @@ class MeshPublisher:
         self.seq += 1
 
     def _send(self, frames: list[bytes]) -> None:
-        try:
-            self._sock.send_multipart(frames, flags=self._zmq.NOBLOCK, copy=False)
-        except self._zmq.Again:
-            self.dropped += 1
+        # a PUB socket never blocks: past the high-water mark of a subscriber, ZeroMQ drops the
+        # message for that subscriber silently
+        self._sock.send_multipart(frames, flags=self._zmq.NOBLOCK, copy=False)
 
     def close(self) -> None:
         if self._sock is not None:
