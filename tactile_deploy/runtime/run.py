@@ -52,7 +52,7 @@ class RunOptions:
     view: bool = False
     preview_dir: Path | None = None
     forces: bool = True
-    clip_tension: bool = True
+    clip_tension: bool = False
     max_frames: int | None = None
     realtime: bool = False
     preview_every_s: float = 1.0
@@ -272,7 +272,9 @@ class Runner:
         self._consecutive_bad = 0
         force = None
         if self.forces is not None:
-            force = self.forces.estimate(pred.vertices_mm, clip_tension=o.clip_tension)
+            # per-node pressures cost a dense product; only the publisher sends them
+            force = self.forces.estimate(pred.vertices_mm, clip_tension=o.clip_tension,
+                                         pressure=self.publisher is not None)
             laps.lap("forces")
         latency_ms = (time.monotonic_ns() - frame.t_mono_ns) / 1e6
         self._track_ood(frame.index, pred)
@@ -282,7 +284,8 @@ class Runner:
                 latency_ms=latency_ms, ood_score=pred.ood_score,
                 in_distribution=pred.in_distribution,
                 total_normal_force_n=None if force is None else force.total_normal_force_n,
-                pressure_kpa=None if force is None else force.pressure_kpa)
+                pressure_kpa=None if force is None or not force.pressure_kpa.size
+                else force.pressure_kpa)
             laps.lap("publish")
         if self.writer is not None and frame.index % o.every == 0:
             self.writer.submit(frame.index, pred.vertices_mm)

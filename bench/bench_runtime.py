@@ -1,0 +1,299 @@
+"""Runtime speed and memory: one 640 x 480 RGB frame to a 5,380-node mesh on one CPU thread.
+
+    python bench/bench_runtime.py [--plugin gelslim2] [--frames 3000] [--memory-frames 100000]
+                                  [--small] [--no-write]      (or: tactile-deploy bench runtime)
+
+Measures, in one run on this machine, with one thread everywhere (onnxruntime intra-op 1,
+OpenCV 1, BLAS 1):
+
+* end to end: frame -> mesh (:func:`tactile_deploy.runtime.pipeline.frame_to_mesh`), p50 and
+  p95 over ``--frames`` frames of the plugin's demo clip, and each stage's share;
+* reference paths, side by side with ratios: the imaging stages against the straightforward
+  path (``cv2.undistort`` of the whole frame, ``cv2.warpPerspective`` onto the grid, then the
+  shading module's ``DepthFromShading``); the onnxruntime model stage against the same network
+  evaluated by torch (eager, one thread) when the training bundle named in the model's metadata
+  is present; forces (total only vs per-node pressure);
+* memory: the ``run`` loop (frames -> mesh -> forces -> status) over ``--memory-frames`` frames,
+  RSS at the start (after warm-up) and the end, and its largest value.
+
+Targets (issue 5): p50 <= 4 ms end to end (>= 250 Hz); RSS flat over 100,000 frames.
+Results go to BENCHMARKS.md (section ``runtime``) unless ``--no-write``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+TARGET_P50_MS = 4.0
+
+
+def rss_mb() -> float:
+    """Resident set size of this process now, MiB (Linux /proc; ru_maxrss elsewhere)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def pct(values, q):
+    import numpy as np
+
+    return float(np.percentile(np.asarray(values, float), q))
+
+
+def time_calls(fn, args_list, repeat_min_s: float = 0.0):
+    """Per-call wall times (ms) of ``fn(*args)`` over ``args_list``."""
+    out = []
+    for args in args_list:
+        t0 = time.perf_counter_ns()
+        fn(*args)
+        out.append((time.perf_counter_ns() - t0) / 1e6)
+    return out
+
+
+def reference_imaging(plugin):
+    """The straightforward imaging path: full-frame undistort, perspective warp to the grid,
+    then the shading module (as a calibration script would do it)."""
+    import cv2
+    import numpy as np
+
+    from tactile_deploy.imaging.shading import DepthFromShading
+
+    m = plugin.manifest
+    cam = m.camera
+    g = cam.grid
+    k, d = cam.camera_matrix, cam.dist_coeffs
+    # grid pixel (col, row) -> sensor mm -> undistorted px: the inverse homography
+    a = np.array([[g.pitch_x_mm, 0, g.x_min_mm + 0.5 * g.pitch_x_mm],
+                  [0, -g.pitch_y_mm, g.y_max_mm - 0.5 * g.pitch_y_mm], [0, 0, 1.0]])
+    px_from_grid = np.linalg.inv(cam.homography) @ a
+    size = (g.nx, g.ny)
+    ref_u = cv2.undistort(plugin.reference_frame, k, d)
+    ref = cv2.warpPerspective(ref_u, px_from_grid, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    shading = DepthFromShading(plugin.shading_model, ref)
+
+    def depth(frame):
+        und = cv2.undistort(frame, k, d)
+        rect = cv2.warpPerspective(und, px_from_grid, size,
+                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        return shading.depth(rect)
+
+    return depth
+
+
+def torch_reference(model_path):
+    """A torch callable of the same network (eager, one thread), or (None, reason)."""
+    try:
+        import onnxruntime as ort
+        import torch
+    except ImportError as e:
+        return None, f"torch not installed ({e})"
+    meta = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"]
+                                ).get_modelmeta().custom_metadata_map
+    bundle = meta.get("torch_bundle")
+    if not bundle:
+        return None, "the model's metadata names no torch bundle (key 'torch_bundle')"
+    path = Path(bundle)
+    if not path.is_absolute():
+        path = Path(model_path).parent / path
+    if not path.is_file():
+        return None, f"torch bundle {path} not found"
+    try:
+        from training.train import load_bundle
+    except ImportError as e:
+        return None, f"training package not importable ({e})"
+    torch.set_num_threads(1)
+    model, _ = load_bundle(path)
+
+    @torch.no_grad()
+    def run(depth):
+        return model(torch.as_tensor(depth))
+
+    return run, str(path)
+
+
+def run(plugin_name: str, frames: int, memory_frames: int) -> dict:
+    import cv2
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from tactile_deploy.runtime.forces import ForceEstimator
+    from tactile_deploy.runtime.pipeline import Laps, frame_to_mesh
+    from tactile_deploy.runtime.plugins import SensorPlugin
+    from tactile_deploy.runtime.predictor import MeshPredictor
+    from tactile_deploy.runtime.run import RunOptions, Runner
+    from tactile_deploy.runtime.sources.base import ArrayPlayback
+    from tactile_deploy.runtime.sources.factory import open_clip
+
+    cv2.setNumThreads(1)
+    limits = threadpool_limits(1)
+    plugin = SensorPlugin.load(plugin_name)
+    predictor = MeshPredictor.from_plugin(plugin, threads=1, providers="cpu", warmup=5)
+    with open_clip(plugin.demo_clip_path()) as src:
+        clip = [f.image for f in src]
+    h, w = clip[0].shape[:2]
+    pipe = predictor.pipeline
+    res: dict = {"plugin": plugin.name, "frame": f"{w}x{h}", "n_frames": frames,
+                 "model_file": predictor.model_path.name, "providers": predictor.providers}
+
+    # -- end to end, stage by stage
+    for i in range(50):
+        frame_to_mesh(clip[i % len(clip)], pipe, predictor)
+    totals, stages = [], {}
+    for i in range(frames):
+        laps = Laps().start()
+        t0 = time.perf_counter_ns()
+        frame_to_mesh(clip[i % len(clip)], pipe, predictor, laps)
+        totals.append((time.perf_counter_ns() - t0) / 1e6)
+        for k, v in laps.times_ns.items():
+            stages.setdefault(k, []).append(v / 1e6)
+    res["e2e_p50_ms"] = pct(totals, 50)
+    res["e2e_p95_ms"] = pct(totals, 95)
+    res["e2e_mean_ms"] = float(np.mean(totals))
+    res["stages"] = {k: {"p50_ms": pct(v, 50), "mean_ms": float(np.mean(v)),
+                         "share": float(np.mean(v) / np.mean(totals))} for k, v in stages.items()}
+
+    # -- imaging: ours vs the straightforward path
+    ref_depth = reference_imaging(plugin)
+    sample = [(clip[i % len(clip)],) for i in range(min(frames, 600))]
+    ours = time_calls(pipe.imaging_depth, sample)
+    theirs = time_calls(ref_depth, sample)
+    diff = max(float(np.abs(pipe.imaging_depth(f) - ref_depth(f)).max()) for (f,) in sample[:20])
+    res["imaging"] = {"ours_p50_ms": pct(ours, 50), "reference_p50_ms": pct(theirs, 50),
+                      "ratio": pct(theirs, 50) / pct(ours, 50), "max_depth_difference_mm": diff}
+
+    # -- model: onnxruntime vs torch
+    depths = [(pipe.frame_to_depth(f)[None, None],) for (f,) in sample[:200]]
+    ort_ms = time_calls(predictor.infer, depths)
+    res["model"] = {"onnxruntime_p50_ms": pct(ort_ms, 50)}
+    ref_fn, info = torch_reference(predictor.model_path)
+    if ref_fn is None:
+        res["model"]["torch"] = f"not measured: {info}"
+    else:
+        for d in depths[:10]:
+            ref_fn(d[0])
+        t_ms = time_calls(ref_fn, depths)
+        res["model"].update({"torch_p50_ms": pct(t_ms, 50), "ratio": pct(t_ms, 50) / pct(ort_ms, 50),
+                             "torch_bundle": info})
+
+    # -- forces
+    estimator = ForceEstimator.for_plugin(plugin)
+    verts = [(predictor.infer(d[0]).vertices_mm[0],) for d in depths[:100]]
+    total_only = time_calls(lambda v: estimator.estimate(v, pressure=False), verts)
+    full = time_calls(lambda v: estimator.estimate(v), verts)
+    res["forces"] = {"total_p50_ms": pct(total_only, 50), "pressure_p50_ms": pct(full, 50)}
+
+    # -- memory over a long run (the real loop, no file output)
+    src = ArrayPlayback(clip, np.arange(len(clip)) * 33_333_333, "demo clip (looped)", loop=True)
+    warm = Runner(predictor, src, RunOptions(max_frames=min(1000, memory_frames), forces=False),
+                  forces=estimator)
+    warm.run()
+    src = ArrayPlayback(clip, np.arange(len(clip)) * 33_333_333, "demo clip (looped)", loop=True)
+    samples = []
+    rss0 = rss_mb()
+    t0 = time.perf_counter()
+
+    def status(_line):
+        samples.append(rss_mb())
+
+    runner = Runner(predictor, src, RunOptions(max_frames=memory_frames,
+                                               status_every_s=max(1.0, memory_frames / 2e4)),
+                    forces=estimator, status=status)
+    summary = runner.run()
+    res["memory"] = {"frames": summary.frames, "rss_start_mb": rss0, "rss_end_mb": rss_mb(),
+                     "rss_max_mb": max(samples + [rss0]), "seconds": time.perf_counter() - t0,
+                     "loop_fps": summary.fps, "loop_latency_p50_ms": summary.latency_p50_ms}
+    limits.restore_original_limits()
+    return res
+
+
+def markdown(r: dict) -> str:
+    from bench.report import machine_line
+
+    p50 = r["e2e_p50_ms"]
+    met = "met" if p50 <= TARGET_P50_MS else f"not met: {p50 / TARGET_P50_MS:.1f} x the budget"
+    lines = [
+        "## Runtime: camera frame to mesh (`tactile-deploy bench runtime`)",
+        "",
+        f"{machine_line()}; one thread (onnxruntime, OpenCV, BLAS); plugin `{r['plugin']}`, "
+        f"{r['frame']} RGB frames of its demo clip, model `{r['model_file']}`, {r['n_frames']} frames.",
+        "",
+        "| end to end (frame -> 5,380-node mesh) | p50 | p95 | rate at p50 | target |",
+        "|---|---:|---:|---:|---|",
+        f"| measured | {p50:.2f} ms | {r['e2e_p95_ms']:.2f} ms | {1e3 / p50:.0f} Hz | "
+        f"p50 <= {TARGET_P50_MS:g} ms (>= 250 Hz): {met} |",
+        "",
+        "| stage | p50 (ms) | mean (ms) | share of the mean |",
+        "|---|---:|---:|---:|",
+    ]
+    for k, s in r["stages"].items():
+        lines.append(f"| {k} | {s['p50_ms']:.3f} | {s['mean_ms']:.3f} | {100 * s['share']:.1f} % |")
+    im = r["imaging"]
+    md = r["model"]
+    lines += [
+        "",
+        "| path, side by side | ours p50 | reference p50 | ratio (reference / ours) |",
+        "|---|---:|---:|---:|",
+        f"| imaging: frame -> depth on the imaging grid (reference: full-frame cv2.undistort + "
+        f"warpPerspective + DepthFromShading; max depth difference {1e3 * im['max_depth_difference_mm']:.1f} um) "
+        f"| {im['ours_p50_ms']:.3f} ms | {im['reference_p50_ms']:.3f} ms | {im['ratio']:.1f} x |",
+    ]
+    if "torch_p50_ms" in md:
+        lines.append(f"| model: onnxruntime vs torch eager, one thread | {md['onnxruntime_p50_ms']:.3f} ms"
+                     f" | {md['torch_p50_ms']:.3f} ms | {md['ratio']:.1f} x |")
+    else:
+        lines.append(f"| model: onnxruntime | {md['onnxruntime_p50_ms']:.3f} ms | {md['torch']} | - |")
+    f = r["forces"]
+    lines.append(f"| forces: total normal force only vs per-node pressure (dense 1,076 x 1,076) | "
+                 f"{f['total_p50_ms']:.3f} ms | {f['pressure_p50_ms']:.3f} ms | "
+                 f"{f['pressure_p50_ms'] / max(f['total_p50_ms'], 1e-9):.0f} x |")
+    m = r["memory"]
+    drift = m["rss_end_mb"] - m["rss_start_mb"]
+    lines += [
+        "",
+        f"Memory, the `run` loop (frame -> mesh -> total force -> status) over {m['frames']:,} "
+        f"frames ({m['seconds']:.0f} s, {m['loop_fps']:.0f} fps, latency p50 "
+        f"{m['loop_latency_p50_ms']:.2f} ms): RSS {m['rss_start_mb']:.1f} MiB at the start "
+        f"(after 1,000 warm-up frames), {m['rss_end_mb']:.1f} MiB at the end ({drift:+.1f} MiB), "
+        f"largest {m['rss_max_mb']:.1f} MiB.",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--plugin", default="gelslim2")
+    ap.add_argument("--frames", type=int, default=3000)
+    ap.add_argument("--memory-frames", type=int, default=100_000)
+    ap.add_argument("--small", action="store_true", help="a quick run (300 frames, 2,000 for memory)")
+    ap.add_argument("--no-write", action="store_true", help="print, do not update BENCHMARKS.md")
+    args = ap.parse_args(argv)
+    if args.small:
+        args.frames, args.memory_frames = 300, 2000
+    import json
+
+    res = run(args.plugin, args.frames, args.memory_frames)
+    print(json.dumps(res, indent=2))
+    md = markdown(res)
+    print(md)
+    if not args.no_write and not args.small:
+        from bench.report import write_section
+
+        write_section("runtime", md)
+        print("updated BENCHMARKS.md (section runtime)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
