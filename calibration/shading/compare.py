@@ -1,7 +1,8 @@
 """Side-by-side comparison of the shading model with the two reference methods on ball presses.
 
 One run: grouped k-fold cross-validation over presses (every press held out once), the same
-folds, circles and evaluation for all three methods (:mod:`.evaluate`).
+folds, circles and evaluation for all three methods (:mod:`.evaluate`). With ``workers > 1``
+the methods run in separate processes (spawned, so torch is never forked).
 """
 
 from __future__ import annotations
@@ -50,16 +51,36 @@ def method_fitters(ball_radius_mm: float, mm_per_px: float,
     return {"lut": lut, "rgb_table": rgb_table, "mlp": mlp}
 
 
+def _run_method(key, presses, ball_radius_mm, mm_per_px, folds, config, mlp_steps):
+    t0 = time.perf_counter()
+    fitter = method_fitters(ball_radius_mm, mm_per_px, config, mlp_steps)[key]
+    res = cross_validate(presses, fitter, ball_radius_mm, mm_per_px, folds)
+    return res, time.perf_counter() - t0
+
+
 def compare_methods(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
                     folds: int = 7, methods=("lut", "rgb_table", "mlp"),
                     config: ShadingFitConfig | None = None,
-                    mlp_steps: int = 800) -> MethodComparison:
-    """Cross-validate each method on the same folds; results keyed by method."""
-    fitters = method_fitters(ball_radius_mm, mm_per_px, config, mlp_steps)
-    results, summaries, seconds = {}, {}, {}
-    for key in methods:
-        t0 = time.perf_counter()
-        results[key] = cross_validate(presses, fitters[key], ball_radius_mm, mm_per_px, folds)
-        seconds[key] = time.perf_counter() - t0
-        summaries[key] = summarise(results[key])
+                    mlp_steps: int = 800, workers: int = 1) -> MethodComparison:
+    """Cross-validate each method on the same folds; results keyed by method.
+
+    workers : processes to run the methods in (1: all in this process).
+    """
+    unknown = [m for m in methods if m not in METHOD_NAMES]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; known: {sorted(METHOD_NAMES)}")
+    args = (presses, ball_radius_mm, mm_per_px, folds, config, mlp_steps)
+    if workers > 1 and len(methods) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(min(workers, len(methods)),
+                                 mp_context=mp.get_context("spawn")) as pool:
+            futures = {key: pool.submit(_run_method, key, *args) for key in methods}
+            done = {key: f.result() for key, f in futures.items()}
+    else:
+        done = {key: _run_method(key, *args) for key in methods}
+    results = {key: done[key][0] for key in methods}
+    seconds = {key: done[key][1] for key in methods}
+    summaries = {key: summarise(results[key]) for key in methods}
     return MethodComparison(results, summaries, seconds)

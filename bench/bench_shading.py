@@ -1,0 +1,193 @@
+"""Marble shading model on the real GelSight ball presses: accuracy of three methods side by
+side, and speed of the applied model.
+
+    python bench/bench_shading.py [--small] [--figure docs/img/shading_real.png]
+
+Measures, in one run on this machine:
+
+* grouped 7-fold cross-validation over the 42 presses of
+  ``../shared/data/real/fots_gelsight_ballpress`` (every press held out once, same folds for
+  all methods): shape error (RMS residual to the sphere of the ball's known radius, centre and
+  offset free, inside 0.8 x the labelled contact radius), fitted ball radius (radius free too)
+  against 2.35 mm, and that split by the distance of the press from the image centre;
+* speed of the applied model on a 240 x 320 frame (offset, colour lookup, Poisson), of the
+  Poisson solve alone (240 x 320 and 128 x 128) and of the calibration on all 42 presses.
+
+``main()`` prints both as markdown tables. ``--small`` runs 3 folds and a shorter MLP training
+(seconds; a smoke test, not the reported figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+DATA = ROOT / ".." / "shared" / "data" / "real" / "fots_gelsight_ballpress"
+BALL_RADIUS_MM = 2.35
+MM_PER_PX = 1 / 19.58
+
+
+def load():
+    from calibration.shading.presses import load_presses
+
+    if not (DATA / "annotate.csv").is_file():
+        raise SystemExit(f"real ball-press data not found at {DATA.resolve()} (see "
+                         "../shared/data/README.md)")
+    return load_presses(DATA / "background.png", DATA, DATA / "annotate.csv")
+
+
+def _median_ms(fn, n: int) -> tuple[float, float]:
+    """Median wall time and median process CPU time of one call, ms (the CPU time is what the
+    call costs when the machine is shared with other work)."""
+    import numpy as np
+
+    fn()
+    wall, cpu = [], []
+    for _ in range(n):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall) * 1e3), float(np.median(cpu) * 1e3)
+
+
+def accuracy(presses, folds: int = 7, mlp_steps: int = 800):
+    """Cross-validated comparison (:func:`calibration.shading.compare.compare_methods`)."""
+    from calibration.shading.compare import compare_methods
+
+    return compare_methods(presses, BALL_RADIUS_MM, MM_PER_PX, folds=folds, mlp_steps=mlp_steps,
+                           workers=2)
+
+
+def speed(presses, n: int = 50) -> dict[str, tuple[float, float]]:
+    """(wall, CPU) median times of the runtime steps (ms) and of the calibration (s)."""
+    import numpy as np
+
+    from calibration.shading.baselines import fit_rgb_table
+    from calibration.shading.fit import fit_shading
+    from tactile_deploy.imaging.poisson import poisson_solver
+    from tactile_deploy.imaging.shading import DepthFromShading, frame_offset
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    fit = fit_shading(presses, BALL_RADIUS_MM, MM_PER_PX)
+    calib_s = (time.perf_counter() - t0, time.process_time() - c0)
+    run = DepthFromShading(fit.model, presses.reference)
+    frame = presses.frames[0]
+    rng = np.random.default_rng(0)
+    g = rng.standard_normal((2, 320, 240)).astype(np.float32)
+    g128 = rng.standard_normal((2, 128, 128)).astype(np.float32)
+    s320 = poisson_solver((320, 240), "dirichlet", (0.05, 1.0))
+    s128 = poisson_solver((128, 128), "dirichlet", (1.0, 1.0))
+    table = fit_rgb_table(presses, BALL_RADIUS_MM, MM_PER_PX)
+    return {
+        "frame offset": _median_ms(lambda: frame_offset(frame, presses.reference), n),
+        "colour -> gradients (incl. offset)": _median_ms(lambda: run.image_gradients(frame), n),
+        "frame -> depth (gradients + Poisson)": _median_ms(lambda: run.depth(frame), n),
+        "Poisson 240 x 320": _median_ms(lambda: s320.integrate(g[0], g[1]), n),
+        "Poisson 128 x 128": _median_ms(lambda: s128.integrate(g128[0], g128[1]), n),
+        "reference RGB table frame -> depth": _median_ms(lambda: table.depth(frame), n),
+        "calibration on 42 presses (s)": calib_s,
+    }
+
+
+def figure(presses, path: Path, fold: int = 0, folds: int = 7, mlp_steps: int = 800) -> None:
+    """Held-out reconstructions of four presses of one fold vs the fitted sphere (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from calibration.shading.compare import METHOD_NAMES, method_fitters
+    from calibration.shading.evaluate import fit_sphere
+    from tactile_deploy.atomic import atomic_path
+
+    n = len(presses)
+    held = np.flatnonzero(np.arange(n) % folds == fold)
+    dist = np.hypot(presses.circles[held, 0] - 119.5, presses.circles[held, 1] - 159.5)
+    show = held[np.argsort(dist)][[0, 2, len(held) - 2, len(held) - 1]]
+    train = presses.subset(np.arange(n) % folds != fold)
+    predictors = {k: f(train) for k, f in method_fitters(BALL_RADIUS_MM, MM_PER_PX,
+                                                          mlp_steps=mlp_steps).items()}
+    colours = {"lut": "tab:blue", "rgb_table": "tab:orange", "mlp": "tab:green"}
+    fig, axes = plt.subplots(len(show), 3, figsize=(10.0, 2.3 * len(show)),
+                             gridspec_kw={"width_ratios": [0.8, 1.6, 1.6]})
+    for row, i in enumerate(show):
+        cx, cy, a = presses.circles[i]
+        half = int(1.5 * a)
+        sl = (slice(max(int(cy) - half, 0), int(cy) + half),
+              slice(max(int(cx) - half, 0), int(cx) + half))
+        axes[row, 0].imshow(presses.frames[i][sl])
+        axes[row, 0].set_title(f"{presses.names[i]} (held out)", fontsize=8)
+        axes[row, 0].axis("off")
+        band = 0.8 * a * MM_PER_PX
+        for key, pred in predictors.items():
+            d = pred.depth(presses.frames[i])
+            sph = fit_sphere(d, presses.circles[i], MM_PER_PX, BALL_RADIUS_MM)
+            ccol, crow = sph.centre_px
+            x = (np.arange(d.shape[1]) - ccol) * MM_PER_PX
+            line = d[int(round(crow))]
+            sphere = sph.apex_mm - (BALL_RADIUS_MM - np.sqrt(np.maximum(
+                BALL_RADIUS_MM ** 2 - x ** 2, 0.0)))
+            inside = np.abs(x) <= band
+            label = f"{METHOD_NAMES[key].split(' (')[0].replace('reference: ', '')}"
+            if key == "lut":
+                ax = axes[row, 1]
+                ax.plot(x, line, color=colours[key], lw=1.4, label="reconstruction")
+                ax.plot(x[np.abs(x) < 2.2], sphere[np.abs(x) < 2.2], "k--", lw=1.0,
+                        label="fitted sphere, R = 2.35 mm")
+                ax.axvspan(-band, band, color="0.92", zorder=0)
+                ax.set_xlim(-2.4 * a * MM_PER_PX, 2.4 * a * MM_PER_PX)
+                ax.set_ylim(-0.1, sph.apex_mm + 0.15)
+                ax.set_ylabel("depth (mm)", fontsize=8)
+                ax.legend(fontsize=7, loc="upper left")
+                ax.set_title(f"{METHOD_NAMES[key]}", fontsize=8)
+            axes[row, 2].plot(x[inside], 1e3 * (line - sphere)[inside], color=colours[key],
+                              lw=1.2, label=f"{label}: shape error {sph.rms_um:.0f} um")
+        axes[row, 2].axhline(0, color="k", lw=0.6)
+        axes[row, 2].set_ylim(-150, 150)
+        axes[row, 2].set_ylabel("depth - sphere (um)", fontsize=8)
+        axes[row, 2].legend(fontsize=6.5, loc="lower center")
+        axes[row, 2].set_title("residual to the fitted sphere, inside 0.8 x contact radius",
+                               fontsize=8)
+        for ax in axes[row, 1:]:
+            ax.tick_params(labelsize=7)
+            ax.set_xlabel("x from the fitted centre (mm)", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=72)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--small", action="store_true", help="3 folds, short MLP training")
+    parser.add_argument("--figure", type=Path, help="write the held-out figure (PNG) here")
+    args = parser.parse_args(argv)
+    from calibration.shading.compare import METHOD_NAMES
+    from calibration.shading.evaluate import markdown_table
+
+    presses = load()
+    folds, steps = (3, 200) if args.small else (7, 800)
+    comp = accuracy(presses, folds, steps)
+    print(f"### Held-out ball presses ({len(presses)} presses, {folds}-fold grouped CV)\n")
+    print(markdown_table({METHOD_NAMES[k]: s for k, s in comp.summaries.items()}))
+    print("\ncross-validation wall time: "
+          + ", ".join(f"{k} {v:.1f} s" for k, v in comp.seconds.items()))
+    print("\n### Speed (median of 50 runs, one frame 240 x 320, single thread)\n")
+    print("| step | wall | CPU |\n|---|---:|---:|")
+    for k, (wall, cpu) in speed(presses, 10 if args.small else 50).items():
+        unit = "s" if k.endswith("(s)") else "ms"
+        print(f"| {k.replace(' (s)', '')} | {wall:.2f} {unit} | {cpu:.2f} {unit} |")
+    if args.figure:
+        figure(presses, args.figure, mlp_steps=steps)
+        print(f"\nwrote {args.figure}")
+
+
+if __name__ == "__main__":
+    main()
