@@ -131,7 +131,7 @@ def figure(presses, path: Path, fold: int = 0, folds: int = 7, mlp_steps: int = 
             sph = fit_sphere(d, presses.circles[i], MM_PER_PX, BALL_RADIUS_MM)
             ccol, crow = sph.centre_px
             x = (np.arange(d.shape[1]) - ccol) * MM_PER_PX
-            line = d[int(round(crow))]
+            line = d[round(crow)]
             sphere = sph.apex_mm - (BALL_RADIUS_MM - np.sqrt(np.maximum(
                 BALL_RADIUS_MM ** 2 - x ** 2, 0.0)))
             inside = np.abs(x) <= band

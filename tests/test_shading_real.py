@@ -13,16 +13,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibration.shading.baselines import fit_rgb_table
 from calibration.shading.circles import (
     ContactNotFoundError,
     contact_radius_from_gradients,
     detect_contact_circle,
 )
-from calibration.shading.baselines import fit_rgb_table
 from calibration.shading.compare import METHOD_NAMES, compare_methods
 from calibration.shading.evaluate import depth_errors, fit_sphere, markdown_table
 from calibration.shading.fit import fit_shading
-from calibration.shading.presses import PressDataError, PressSet, load_presses, read_annotations
+from calibration.shading.presses import (
+    PressDataError,
+    PressSet,
+    load_presses,
+    read_annotations,
+)
 from calibration.shading.targets import sphere_cap_depth_mm, sphere_gradients
 from tactile_deploy.imaging.shading import (
     DepthFromShading,
@@ -156,7 +161,7 @@ def synthetic():
     # the table only knows slopes up to those inside 0.9 of the deepest calibration press:
     # the presses to reconstruct stay within that range
     circ_test, depth_test = _synthetic_cap(rng, 6, (22.0, 30.0))
-    drift = lambda: rng.uniform(-20, 20, 3)  # noqa: E731
+    drift = lambda: rng.uniform(-20, 20, 3)
     frames_train = np.stack([render_lambertian(d, rng, drift()) for d in depth_train])
     frames_test = np.stack([render_lambertian(d, rng, drift()) for d in depth_test])
     train = PressSet(ref, frames_train, [f"{i:03d}.png" for i in range(24)], circ_train)
@@ -202,7 +207,7 @@ def test_synthetic_sphere_fit_recovers_ball(synthetic):
 def test_detection_on_synthetic_presses(synthetic):
     """Centres to a fraction of a pixel; the ridge of colour change (the detected radius) lies
     inside the contact edge; a contact cut by the border; a frame without contact."""
-    train, frames, depths, circles = synthetic
+    train = synthetic[0]
     for f, c in zip(train.frames[:8], train.circles[:8]):
         got = detect_contact_circle(f, train.reference)
         assert np.hypot(*(got[:2] - c[:2])) < 1.0
@@ -338,7 +343,8 @@ def test_runtime_imports_without_torch_or_warp():
     code = ("import sys; sys.modules['torch'] = None; sys.modules['warp'] = None; "
             "import tactile_deploy.imaging.shading, tactile_deploy.imaging.poisson; "
             "import calibration.shading.fit, calibration.shading.cli; print('ok')")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         check=False)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 

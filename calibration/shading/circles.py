@@ -75,7 +75,7 @@ def detect_contact_circle(frame, reference, smooth_px: float = 1.5, n_rays: int 
     m8 = np.clip(mag * (255.0 / peak), 0, 255).astype(np.uint8)
     _, bw = cv2.threshold(m8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     bw = cv2.morphologyEx(bw, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-    n, lab, stats, cent = cv2.connectedComponentsWithStats(bw)
+    n, _labels, stats, cent = cv2.connectedComponentsWithStats(bw)
     if n < 2:
         raise ContactNotFoundError("no contact: nothing above the Otsu threshold")
     k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))

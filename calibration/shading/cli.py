@@ -12,7 +12,6 @@ the commands so that ``--help`` stays fast.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -40,10 +39,10 @@ def shading_command(
     ball_radius_mm: float = typer.Option(..., help="Radius of the calibration ball, mm."),
     mm_per_px: float = typer.Option(..., help="Sensor-plane scale, mm per pixel."),
     out: Path = typer.Option(..., help="Shading model to write (.npz)."),
-    annotations: Optional[Path] = typer.Option(
+    annotations: Path | None = typer.Option(
         None, help="CSV img_names,center_x,center_y,radius (px); without it circles are "
         "detected."),
-    circles_out: Optional[Path] = typer.Option(
+    circles_out: Path | None = typer.Option(
         None, help="Write the circles used (refined centres, measured contact radii) as CSV: "
         "correct them by hand and pass them back with --annotations."),
     folds: int = typer.Option(0, help="Also cross-validate with this many folds (0: no) and "
@@ -99,7 +98,7 @@ def shading_command(
 
 
 def depth_command(
-    frames: List[Path] = typer.Argument(..., help="RGB frames to reconstruct."),
+    frames: list[Path] = typer.Argument(..., help="RGB frames to reconstruct."),
     shading: Path = typer.Option(..., help="Shading model (.npz) from `calibrate shading`."),
     reference: Path = typer.Option(..., help="Frame of the sensor with nothing touching it."),
     out: Path = typer.Option(..., help="Folder for the depth maps (<frame name>.npy, mm)."),
@@ -108,7 +107,11 @@ def depth_command(
     import numpy as np
 
     from tactile_deploy.atomic import atomic_path
-    from tactile_deploy.imaging.shading import DepthFromShading, ShadingModelError, load_shading
+    from tactile_deploy.imaging.shading import (
+        DepthFromShading,
+        ShadingModelError,
+        load_shading,
+    )
 
     from .presses import PressDataError, read_rgb
 

@@ -14,8 +14,9 @@ frames with known depth maps (virtual-sensor presses, synthetic renders).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -78,7 +79,7 @@ def fit_sphere(depth_mm, circle, mm_per_px: float, radius_mm: float | None = Non
         return apex - (r - q) - z
 
     def jac(p):
-        x0, y0, apex, r = unpack(p)
+        x0, y0, _, r = unpack(p)
         rho2 = (x - x0) ** 2 + (y - y0) ** 2
         q = np.sqrt(np.maximum(r * r - rho2, 1e-12))
         cols_ = [(x - x0) / q, (y - y0) / q, np.ones_like(x)]
@@ -176,8 +177,8 @@ def summarise(results: list[PressResult]) -> Summary:
 
 def markdown_table(summaries: dict[str, Summary]) -> str:
     """The comparison table (one row per method) as GitHub markdown."""
-    lines = ["| method | shape error mean (um) | shape error worst (um) | fitted radius error mean "
-             "| worst abs | centre half mean | edge half mean | edge half worst abs |",
+    lines = [("| method | shape error mean (um) | shape error worst (um) | fitted radius error "
+              "mean | worst abs | centre half mean | edge half mean | edge half worst abs |"),
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, s in summaries.items():
         lines.append(f"| {name} | {s.shape_mean_um:.1f} | {s.shape_worst_um:.1f} | "

@@ -66,7 +66,7 @@ class PressSet:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def subset(self, index) -> "PressSet":
+    def subset(self, index) -> PressSet:
         """The presses at ``index`` (indices or boolean mask), same reference."""
         idx = np.arange(len(self))[index]
         return PressSet(self.reference, self.frames[idx], [self.names[i] for i in idx],

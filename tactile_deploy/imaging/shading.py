@@ -100,7 +100,7 @@ class ShadingHeader(BaseModel):
     )
 
     @model_validator(mode="after")
-    def _check(self) -> "ShadingHeader":
+    def _check(self) -> ShadingHeader:
         if not self.colour_max > self.colour_min:
             raise ValueError(f"colour_max={self.colour_max} must exceed colour_min="
                              f"{self.colour_min}")
@@ -120,7 +120,7 @@ class ShadingHeader(BaseModel):
 def node_grid_shape(image_shape: tuple[int, int], spacing_px: float) -> tuple[int, int]:
     """(rows, columns) of nodes at multiples of ``spacing_px`` that cover (H, W) pixels."""
     h, w = image_shape
-    return (int(math.ceil((h - 1) / spacing_px)) + 1, int(math.ceil((w - 1) / spacing_px)) + 1)
+    return (math.ceil((h - 1) / spacing_px) + 1, math.ceil((w - 1) / spacing_px) + 1)
 
 
 @dataclass(frozen=True)
