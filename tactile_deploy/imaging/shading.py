@@ -8,9 +8,11 @@ a depth map), made position-dependent because a sensor's illumination is not uni
    level by which the whole frame differs from the reference, estimated robustly from the pixels
    that look like the reference (the non-contact area). Real recordings drift by tens of grey
    levels; the offset is subtracted before the lookup.
-2. **Colour bin.** ``diff = frame - reference - offset`` per channel, binned into ``bins`` steps
-   over ``[colour_min, colour_max]``; a channel that is saturated in the frame (raw value >=
-   ``saturation_level``) goes to an extra bin of its own (its difference only says "at least").
+2. **Colour bin.** ``diff = (frame - reference - offset) * gain`` per channel (``gain`` =
+   :func:`reference_gain` when the header's ``reference_gain`` is set, else 1), binned into
+   ``bins`` steps over ``[colour_min, colour_max]``; a channel that is saturated in the frame
+   (raw value >= ``saturation_level``) goes to an extra bin of its own (its difference only says
+   "at least").
 3. **Position.** Each colour bin points to a slot of a table stored at a grid of nodes every
    ``node_spacing_px`` pixels; the gradient at a pixel is the bilinear blend of the four nodes
    around it.
