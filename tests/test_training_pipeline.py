@@ -1,0 +1,76 @@
+"""End to end on CPU: simulate a tiny data set, train all stages for a few epochs, export, check
+parity with torch and the runtime's model contract. Runs in well under a minute."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxscript")
+
+
+def test_train_export_parity(tmp_path, pad):
+    from tactile_deploy.runtime.predictor import check_model_contract
+    from training.config import TrainConfig
+    from training.export import export_run, make_session, run_session
+    from training.train import load_bundle, train
+
+    stage = {"epochs": 3, "batch_size": 16, "lr": 2e-3, "kl_weight": 1e-5}
+    cfg = TrainConfig.model_validate({
+        "run_dir": str(tmp_path / "run"),
+        "threads": 2,
+        "model": {
+            "image": {"widths": [8, 16, 32, 64, 128], "hidden": 32, "latent": 32},
+            "mesh": {"channels": [8, 8, 8, 16], "cheb_k": [3, 3, 3, 3], "latent": 32},
+            "projection": {"hidden": [64, 128, 64]},
+            "lean_decoder": {"channels": [16, 16, 8, 8]},
+        },
+        "data": {
+            "synthetic": {
+                "n_samples": 64, "seed": 5, "indenters": ["sphere_r2", "sphere_r4", "cube_corner"],
+                "radius_max_mm": 3.0, "depth_min_mm": 0.3, "depth_max_mm": 1.0, "contact_radius_mm": 7.5,
+                "formulation": "standard",
+            },
+            "cache_file": str(tmp_path / "data.npz"),
+        },
+        "image_vae": stage, "mesh_vae": stage, "lean_decoder": stage, "projection": stage,
+    })
+    lines = []
+    metrics = train(cfg, log=lines.append)
+    run = tmp_path / "run"
+    history = json.loads((run / "history.json").read_text())
+    for name in ("image_vae", "mesh_vae", "lean_decoder", "projection"):
+        losses = [h["train_loss"] for h in history[name]]
+        assert len(losses) == 3
+        assert losses[-1] < losses[0], (name, losses)
+    assert (run / "learning_curves.png").stat().st_size > 1000
+    assert metrics["data"]["train"]["n_samples"] + metrics["data"]["val"]["n_samples"] == 64
+    assert metrics["vertex_rmse_mm"] > 0
+
+    # a second start finds every stage complete and only re-evaluates
+    lines.clear()
+    train(cfg, log=lines.append)
+    assert sum("skipped" in line for line in lines) == 4
+
+    out = tmp_path / "export" / "gelslim_mesh.onnx"
+    card = export_run(run, out, variant="lean", optimize=False)
+    assert card["parity"]["max_abs_diff_mm"] <= 1e-4
+    assert card["parity"]["ood_max_abs_diff_mm"] <= 1e-4
+    meta = check_model_contract(out, pad.content_hash, pad.n_nodes)
+    assert meta["units"] == "mm" and meta["mesh_hash"] == pad.content_hash
+    assert float(meta["ood_threshold"]) == pytest.approx(card["ood_threshold_mm"])
+    assert json.loads(meta["dataset"])["train"]["n_samples"] > 0
+
+    # batch independence and vertices = rest + displacement, read back from the file
+    model, _ = load_bundle(run / "model.pt")
+    held = np.load(run / "heldout.npz")["depth_mm"][:5, None]
+    session = make_session(out)
+    v, d, ood = run_session(session, held, batch=5)
+    v1, d1, _ = run_session(session, held[2:3], batch=1)
+    np.testing.assert_allclose(d1[0], d[2], atol=1e-5)
+    np.testing.assert_allclose(v, pad.vertices[None] + d, atol=1e-4)
+    assert np.all(d[:, pad.backplate_nodes] == 0.0) and ood.shape == (5,)
+    assert (out.with_suffix(".md")).read_text().startswith("# Model card")

@@ -1,0 +1,193 @@
+"""Model card of an exported predictor: a strict JSON file and the markdown rendered from it."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+CARD_FORMAT = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class PadInfo(_Strict):
+    name: str
+    mesh_hash: str = Field(description="sha256 of the frozen pad mesh (vertex order contract).")
+    n_nodes: int
+
+
+class FileInfo(_Strict):
+    onnx: str = Field(description="The shipped graph.")
+    onnx_sha256: str
+    onnx_mb: float
+    reference_fp32: str = Field(description="fp32 graph of the same weights (bit-parity reference).")
+    card_json: str
+
+
+class ModelCard(_Strict):
+    format_version: int = CARD_FORMAT
+    name: str
+    variant: str
+    sensor_family: str
+    pad: PadInfo
+    inputs: dict[str, str]
+    outputs: dict[str, str]
+    frame: str
+    files: FileInfo
+    architecture: dict
+    training: dict
+    heldout_accuracy: dict = Field(description="The shipped graph on held-out contacts (mm).")
+    torch_heldout_metrics: dict = Field(description="Training-time evaluation of both decoders (torch, mm).")
+    parity: dict = Field(description="onnxruntime vs torch on held-out depth maps (mm).")
+    ood: dict = Field(description="Held-out quantiles of the image VAE reconstruction RMSE (mm).")
+    ood_threshold_mm: float = Field(description="ood_score above this (held-out p99) = outside the training range.")
+    limitations: list[str]
+    export_seconds: float
+
+
+def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds) -> dict:
+    from training.export import DEPTH_DOC, FRAME, SENSOR_FAMILY
+
+    cfg = bundle["config"]
+    m = bundle["metrics"]
+    out = Path(out)
+    card = ModelCard(
+        name=out.stem,
+        variant=variant,
+        sensor_family=SENSOR_FAMILY,
+        pad=PadInfo(name="gelslim_v1", mesh_hash=bundle["mesh_hash"], n_nodes=len(bundle["state_dict"]["norm.rest_vertices_mm"])),
+        inputs={"depth": DEPTH_DOC},
+        outputs={
+            "vertices": "[N, 5380, 3] float32, mm, sensor frame, deformed vertex positions",
+            "displacement": "[N, 5380, 3] float32, mm, sensor frame, vertices - rest vertices",
+            "ood_score": "[N] float32, mm, RMS error of the image VAE reconstruction of the depth map",
+        },
+        frame=FRAME,
+        files=FileInfo(
+            onnx=out.name,
+            onnx_sha256=hashlib.sha256(out.read_bytes()).hexdigest(),
+            onnx_mb=round(out.stat().st_size / 2**20, 3),
+            reference_fp32=Path(ref_path).name,
+            card_json=out.with_suffix(".json").name,
+        ),
+        architecture={
+            "model": cfg["model"],
+            "deployed_path": (
+                "image encoder (mean) -> latent projection -> "
+                + ("lean grid decoder" if variant.startswith("lean") else "COMA mesh decoder")
+                + (" (int8 QDQ weights and activations)" if variant.endswith("-int8") else " (fp32)")
+            ),
+        },
+        training={
+            "commit": bundle["git"]["commit"],
+            "dirty": bool(bundle["git"]["dirty"]),
+            "data": m["data"],
+            "stages": {
+                k: cfg[k] for k in ("image_vae", "mesh_vae", "lean_decoder", "projection") if cfg.get(k) is not None
+            },
+            "device": cfg["device"],
+        },
+        heldout_accuracy=accuracy,
+        torch_heldout_metrics={
+            name: {k: v for k, v in d["heldout"].items() if k != "ood"} for name, d in m["decoders"].items()
+        },
+        parity=parity,
+        ood=m["ood"],
+        ood_threshold_mm=ood_threshold,
+        limitations=[
+            "Trained on simulated depth maps of primitive indenters (linear-elastic FEM, frictionless, "
+            "nu = 0.48); real sensor maps need the self-supervised adaptation step.",
+            "The 5,380-node mesh smooths contact features finer than ~2 mm.",
+            "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
+        ],
+        export_seconds=round(float(seconds), 2),
+    )
+    return card.model_dump(mode="json")
+
+
+def write_card(card: dict, json_path: Path, md_path: Path) -> None:
+    from tactile_deploy.atomic import write_json
+
+    ModelCard.model_validate(card)
+    write_json(json_path, card)
+    md_path.write_text(render_markdown(card))
+
+
+def render_markdown(card: dict) -> str:
+    acc, par = card["heldout_accuracy"], card["parity"]
+    lines = [
+        f"# Model card: {card['name']}",
+        "",
+        f"Image-to-mesh predictor for the **{card['sensor_family']}** pad `{card['pad']['name']}` "
+        f"(mesh hash `{card['pad']['mesh_hash'][:16]}...`, {card['pad']['n_nodes']} nodes). "
+        f"Variant `{card['variant']}`: {card['architecture']['deployed_path']}.",
+        "",
+        "## Interface",
+        "",
+        "| name | description |",
+        "|---|---|",
+        *[f"| input `{k}` | {v} |" for k, v in card["inputs"].items()],
+        *[f"| output `{k}` | {v} |" for k, v in card["outputs"].items()],
+        "",
+        f"Frame: {card['frame']}.",
+        "",
+        "## Files",
+        "",
+        f"- `{card['files']['onnx']}` ({card['files']['onnx_mb']} MB, sha256 `{card['files']['onnx_sha256'][:16]}...`)",
+        f"- `{card['files']['reference_fp32']}`: fp32 graph of the same weights",
+        "",
+        "## Held-out accuracy (shipped graph, mm)",
+        "",
+        f"- samples: {acc['n_samples']} (contacts never seen in training)",
+        f"- vertex RMSE: {acc['vertex_rmse_mm']:.4f} mm; relative displacement error: "
+        f"{acc['relative_error']:.3f}; largest node error: {acc['max_error_mm']:.3f} mm",
+        "",
+        "Training-time evaluation (torch, held-out):",
+        "",
+        "| decoder | vertex RMSE mm | relative error | mesh VAE reconstruction RMSE mm |",
+        "|---|---|---|---|",
+        *[
+            f"| {k} | {v['vertex_rmse_mm']:.4f} | {v['relative_error']:.3f} | {v['mesh_reconstruction_rmse_mm']:.4f} |"
+            for k, v in card["torch_heldout_metrics"].items()
+        ],
+        "",
+        "## Parity",
+        "",
+        f"- `{par['graph']}` vs torch on {par['n_inputs']} held-out maps: max |difference| "
+        f"{par['max_abs_diff_mm']:.2e} mm",
+    ]
+    if "shipped_vs_fp32_max_abs_diff_mm" in par:
+        lines.append(
+            f"- shipped int8 graph vs its fp32 graph: max {par['shipped_vs_fp32_max_abs_diff_mm']:.2e} mm, "
+            f"RMS {par['shipped_vs_fp32_rms_diff_mm']:.2e} mm"
+        )
+    lines += [
+        f"- `ood_score` of `{par['graph']}` vs torch: max {par['ood_max_abs_diff_mm']:.2e} mm",
+        "",
+        "## Out-of-distribution score",
+        "",
+        "`ood_score` is the RMS error (mm) of the image VAE's reconstruction of the input depth map. "
+        "Held-out quantiles: "
+        + ", ".join(f"{k.split('_')[-1]} {v:.4f} mm" for k, v in card["ood"].items())
+        + f". Metadata `ood_threshold` = {card['ood_threshold_mm']:.4f} mm (held-out p99): above it a "
+        "map is less typical than 99 % of the held-out maps.",
+        "",
+        "## Training",
+        "",
+        f"- commit `{card['training']['commit']}`" + (" (uncommitted changes)" if card["training"]["dirty"] else ""),
+        f"- data: {json.dumps(card['training']['data']['train']['n_samples'])} training / "
+        f"{card['training']['data']['val']['n_samples']} held-out samples, {card['training']['data']['train']['source']}",
+        "",
+        "## Limitations",
+        "",
+        *[f"- {x}" for x in card["limitations"]],
+        "",
+        "Speed: see `bench/bench_predictor.py` (docs/predictor.md).",
+        "",
+    ]
+    return "\n".join(lines)

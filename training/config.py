@@ -1,0 +1,150 @@
+"""Run configuration of the image-to-mesh predictor (one JSON file per run).
+
+``python -m training train --config CONFIG.json``: the file is a :class:`TrainConfig`. Every model
+here is strict (unknown keys and NaN/inf refused); field descriptions are the documentation.
+Lengths in mm.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+FORMAT_VERSION = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class ImageVAEConfig(_Strict):
+    resolution: int = Field(128, description="Depth map side, pixels (square).")
+    widths: tuple[int, ...] = Field((32, 64, 128, 256, 512), description="Channels of the stride-2 convolutions.")
+    kernel: int = Field(
+        2, ge=2, le=5, description="Convolution kernel size (stride 2); 2 = non-overlapping, 2.4x cheaper than 3."
+    )
+    hidden: int = Field(128, gt=0, description="Fully connected layer before the latent heads.")
+    latent: int = Field(128, gt=0, description="Latent dimension d(z_I).")
+    activation: Literal["elu", "relu"] = Field(
+        "relu", description="ReLU: onnxruntime fuses it into the convolutions (ELU costs ~3 ns/value)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImageVAEConfig":
+        if self.resolution % 2 ** len(self.widths):
+            raise ValueError(
+                f"resolution={self.resolution} is not divisible by 2**{len(self.widths)} "
+                f"(one halving per width in {self.widths})"
+            )
+        return self
+
+
+class MeshVAEConfig(_Strict):
+    channels: tuple[int, ...] = Field((16, 16, 16, 32), description="Encoder features at levels 0..3.")
+    cheb_k: tuple[int, ...] = Field((6, 6, 6, 6), description="Chebyshev order K at levels 0..3 (encoder and decoder).")
+    factors: tuple[int, ...] = Field((4, 4, 4, 4), description="Node reduction per coarsening level.")
+    pooling: Literal["select", "average"] = Field("select", description="Down-sampling of the encoder.")
+    latent: int = Field(128, gt=0, description="Latent dimension d(z_M).")
+    activation: Literal["elu", "relu"] = "relu"
+
+    @model_validator(mode="after")
+    def _check(self) -> "MeshVAEConfig":
+        if not len(self.channels) == len(self.cheb_k) == len(self.factors):
+            raise ValueError(
+                f"channels {self.channels}, cheb_k {self.cheb_k} and factors {self.factors} need one "
+                f"entry per level"
+            )
+        return self
+
+
+class ProjectionConfig(_Strict):
+    hidden: tuple[int, ...] = Field((256, 512, 256), description="Widths of the fully connected layers.")
+    activation: Literal["elu", "relu"] = "relu"
+
+
+class GridDecoderConfig(_Strict):
+    """The lean deployment decoder (:mod:`training.networks.grid_decoder`)."""
+
+    grid: int = Field(64, description="Pixels per side of the in-plane grid (a power of two >= 8).")
+    channels: tuple[int, ...] = Field((64, 64, 32, 32), description="Channels at 4x4, 8x8, ... grid/2.")
+    half_extent_mm: float = Field(17.5, gt=0, description="The grid spans +-this in x and y, mm.")
+
+
+class ModelConfig(_Strict):
+    image: ImageVAEConfig = Field(default_factory=ImageVAEConfig)
+    mesh: MeshVAEConfig = Field(default_factory=MeshVAEConfig)
+    projection: ProjectionConfig = Field(default_factory=ProjectionConfig)
+    lean_decoder: GridDecoderConfig = Field(default_factory=GridDecoderConfig)
+
+
+class SyntheticData(_Strict):
+    """Generate the data with the contact simulator (each rank of a distributed run its own shard)."""
+
+    n_samples: int = Field(gt=0, description="Contacts per rank.")
+    indenters: tuple[str, ...] | Literal["primitive"] = Field("primitive", description="Names, or all primitives.")
+    seed: int = Field(0, ge=0, description="Rank r draws from default_rng([seed, r]).")
+    depth_min_mm: float = Field(0.2, gt=0)
+    depth_max_mm: float = Field(1.2, gt=0)
+    radius_max_mm: float = Field(12.0, ge=0, description="Contacts lie within this radius, mm.")
+    nu: float = Field(0.48, ge=0, lt=0.5, description="Poisson ratio of the gel.")
+    contact_radius_mm: float | None = Field(
+        None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
+    )
+    formulation: Literal["nodal_pressure", "standard"] = Field(
+        "nodal_pressure",
+        description="Tet formulation with contact_radius_mm: locking-free nodal pressure, or standard "
+        "linear tets (a 5x cheaper factorisation; stiffer near nu = 0.5, for quick tests).",
+    )
+
+
+class DataConfig(_Strict):
+    dataset_dir: str | None = Field(None, description="Folder of a simulated dataset (dataset.json + shards).")
+    synthetic: SyntheticData | None = Field(None, description="Or generate the data at start-up.")
+    cache_file: str | None = Field(None, description="npz cache of generated data (reused when present).")
+    val_fraction: float = Field(0.2, gt=0, lt=1, description="Share of contacts held out (split by contact).")
+    split_seed: int = Field(0, ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "DataConfig":
+        if (self.dataset_dir is None) == (self.synthetic is None):
+            raise ValueError("give exactly one of data.dataset_dir and data.synthetic")
+        return self
+
+
+class StageConfig(_Strict):
+    epochs: int = Field(gt=0)
+    batch_size: int = Field(32, gt=0)
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
+    lr_decay: float = Field(0.99, gt=0, le=1, description="Multiplied into the learning rate after every epoch.")
+    kl_weight: float = Field(1e-4, ge=0, description="lambda of the VAE stages (loss = MSE + lambda KL).")
+    latent_weight: float = Field(
+        0.1, ge=0, description="Projection stage: weight of the latent MSE beside the mesh MSE."
+    )
+
+
+class TrainConfig(_Strict):
+    format_version: int = FORMAT_VERSION
+    run_dir: str = Field(description="Checkpoints, curves and the exported model go here.")
+    device: str = Field("cpu", description="'cpu', 'cuda', 'cuda:1', or 'auto'.")
+    seed: int = Field(0, ge=0, description="Initialisation and shuffling seed.")
+    threads: int | None = Field(None, gt=0, description="torch intra-op threads (CPU).")
+    model: ModelConfig = Field(default_factory=ModelConfig)
+    data: DataConfig
+    image_vae: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
+    mesh_vae: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
+    projection: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
+    lean_decoder: StageConfig | None = Field(
+        default_factory=lambda: StageConfig(epochs=20),
+        description="Train the lean decoder on the frozen mesh encoder's latents (None: skip).",
+    )
+
+    @staticmethod
+    def load(path: str | Path) -> "TrainConfig":
+        path = Path(path)
+        try:
+            return TrainConfig.model_validate(json.loads(path.read_text()))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"config {path} not found; write one (see docs/predictor.md)") from None

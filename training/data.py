@@ -1,0 +1,235 @@
+"""Training data: simulated depth maps and pad displacements, the split by contact, the scales.
+
+Sources (:class:`training.config.DataConfig`):
+
+* a simulated dataset folder (``tactile-deploy simulate``; :mod:`tactile_deploy.simulation.dataset`):
+  shards with ``depth`` (S, 128, 128) float32 mm pushed in and ``displacement`` (S, n, 3) float32 mm,
+  sensor frame; rank r of a distributed run reads shards r, r + world, ...;
+* synthetic generation at start-up with the contact simulator (:func:`generate`), rank r drawing
+  from ``default_rng([seed, r])`` -- each rank makes its own shard.
+
+Split: samples are grouped by **contact** (indenter, x, y, theta -- every depth of one press is one
+contact) and whole contacts go to the held-out set, so no press is in both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from training.config import DataConfig, SyntheticData
+
+
+@dataclass
+class ContactData:
+    """depth_mm (N, R, R) float32; displacement_mm (N, n, 3) float32, sensor frame;
+    contact_id (N,) int64 (same id = same press); indenter (N,) str."""
+
+    depth_mm: np.ndarray
+    displacement_mm: np.ndarray
+    contact_id: np.ndarray
+    indenter: np.ndarray
+    source: str
+
+    def __post_init__(self):
+        n = len(self.depth_mm)
+        if self.depth_mm.ndim != 3 or self.depth_mm.shape[1] != self.depth_mm.shape[2]:
+            raise ValueError(f"depth_mm must have shape (N, R, R), got {self.depth_mm.shape}")
+        if self.displacement_mm.shape[0] != n or self.displacement_mm.shape[2:] != (3,):
+            raise ValueError(
+                f"displacement_mm must have shape ({n}, n_nodes, 3), got {self.displacement_mm.shape}"
+            )
+        if len(self.contact_id) != n or len(self.indenter) != n:
+            raise ValueError("contact_id and indenter need one entry per sample")
+
+    def __len__(self) -> int:
+        return len(self.depth_mm)
+
+    def subset(self, idx: np.ndarray) -> "ContactData":
+        return ContactData(
+            self.depth_mm[idx], self.displacement_mm[idx], self.contact_id[idx], self.indenter[idx], self.source
+        )
+
+    def summary(self) -> dict:
+        names, counts = np.unique(self.indenter, return_counts=True)
+        return {
+            "source": self.source,
+            "n_samples": int(len(self)),
+            "n_contacts": int(len(np.unique(self.contact_id))),
+            "indenters": {str(a): int(b) for a, b in zip(names, counts)},
+            "max_depth_mm": float(self.depth_mm.max(initial=0.0)),
+        }
+
+
+def contact_ids(indenter: np.ndarray, x_mm, y_mm, theta_deg) -> np.ndarray:
+    """One id per distinct press (indenter, x, y, theta rounded to 1 um / 1 mdeg), (N,) int64."""
+    keys = np.stack(
+        [
+            np.unique(np.asarray(indenter), return_inverse=True)[1].ravel(),
+            np.rint(np.asarray(x_mm, np.float64) * 1e3).astype(np.int64),
+            np.rint(np.asarray(y_mm, np.float64) * 1e3).astype(np.int64),
+            np.rint(np.asarray(theta_deg, np.float64) * 1e3).astype(np.int64),
+        ],
+        axis=1,
+    )
+    return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
+
+
+def split_by_contact(contact_id: np.ndarray, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(train_idx, val_idx): a seeded random ``val_fraction`` of the contacts is held out."""
+    groups = np.unique(contact_id)
+    if len(groups) < 2:
+        raise ValueError(f"need at least 2 distinct contacts to split, got {len(groups)}")
+    rng = np.random.default_rng(seed)
+    n_val = min(max(1, int(round(val_fraction * len(groups)))), len(groups) - 1)
+    val_groups = rng.permutation(groups)[:n_val]
+    is_val = np.isin(contact_id, val_groups)
+    return np.flatnonzero(~is_val), np.flatnonzero(is_val)
+
+
+def load_dataset_dir(folder: str | Path, rank: int = 0, world: int = 1) -> ContactData:
+    """Shards ``rank, rank + world, ...`` of a simulated dataset folder."""
+    from tactile_deploy.simulation.dataset import load_dataset
+
+    card, paths = load_dataset(folder)
+    mine = paths[rank::world]
+    if not mine:
+        raise ValueError(f"{folder}: {len(paths)} shards cannot feed rank {rank} of {world}")
+    parts = {"depth": [], "displacement": [], "ind": [], "x": [], "y": [], "t": []}
+    for p in mine:
+        with np.load(p) as d:
+            names = d["indenter_names"]
+            parts["depth"].append(d["depth"].astype(np.float32))
+            parts["displacement"].append(d["displacement"].astype(np.float32))
+            parts["ind"].append(names[d["indenter_index"]])
+            parts["x"].append(d["x_mm"])
+            parts["y"].append(d["y_mm"])
+            parts["t"].append(d["theta_deg"])
+    ind = np.concatenate(parts["ind"]).astype(str)
+    return ContactData(
+        np.concatenate(parts["depth"]),
+        np.concatenate(parts["displacement"]),
+        contact_ids(ind, np.concatenate(parts["x"]), np.concatenate(parts["y"]), np.concatenate(parts["t"])),
+        ind,
+        source=f"{Path(folder).name} (mesh {card.mesh_hash[:12]}, shards {rank}::{world})",
+    )
+
+
+def _indenter_names(spec: SyntheticData) -> list[str]:
+    from tactile_deploy.indenters import list_indenters
+
+    return list(list_indenters("primitive")) if spec.indenters == "primitive" else list(spec.indenters)
+
+
+def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) -> ContactData:
+    """Simulate ``spec.n_samples`` contacts for ``rank`` (deterministic in seed and rank).
+
+    With ``spec.contact_radius_mm`` the simulator only lets sensing nodes within that radius touch
+    (its operators are then much cheaper to build); poses whose indenter would reach a node
+    outside are redrawn, so every sample is still an exact contact solution.
+    ``depths_per_contact`` > 1 presses each pose at several depths (one contact, several samples).
+    """
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.simulator import ContactSimulator
+    from tactile_deploy.indenters import ContactPose, get_indenter
+    from tactile_deploy.pad.asset import load_pad
+    from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
+
+    if spec.depth_min_mm > spec.depth_max_mm:
+        raise ValueError(f"depth_min_mm={spec.depth_min_mm} exceeds depth_max_mm={spec.depth_max_mm}")
+    material = Material(nu=spec.nu)
+    pad = load_pad()
+    allowed = None
+    if spec.contact_radius_mm is None:
+        sim = get_simulator(material)
+    else:
+        xy = pad.vertices[pad.sensing_nodes, :2]
+        allowed = np.hypot(xy[:, 0], xy[:, 1]) <= spec.contact_radius_mm
+        # numpy assembly: 0.3 s, against ~30 s of kernel compilation for a cold warp cache
+        sim = ContactSimulator(
+            pad, material, assembly="numpy", formulation=spec.formulation, contact_nodes=np.flatnonzero(allowed)
+        )
+    cam = get_camera()
+    names = _indenter_names(spec)
+    indenters = [get_indenter(n) for n in names]
+    rng = np.random.default_rng([spec.seed, rank])
+    n = spec.n_samples
+    depth = np.zeros((n, cam.resolution, cam.resolution), np.float32)
+    disp = np.zeros((n, pad.n_nodes, 3), np.float32)
+    cid = np.zeros(n, np.int64)
+    ind = np.empty(n, dtype=object)
+    i = contact = rejected = 0
+    while i < n:
+        k = int(rng.integers(len(indenters)))
+        r = spec.radius_max_mm * math.sqrt(rng.random())
+        phi = 2.0 * math.pi * rng.random()
+        theta = 360.0 * rng.random()
+        depths = np.sort(rng.uniform(spec.depth_min_mm, spec.depth_max_mm, depths_per_contact))
+        for dmm in depths[: n - i]:
+            pose = ContactPose(x_mm=r * math.cos(phi), y_mm=r * math.sin(phi), theta_deg=theta, depth_mm=float(dmm))
+            if allowed is not None and np.any(sim.intrusion(indenters[k], pose)[~allowed] > 0):
+                rejected += 1
+                break
+            try:
+                s = simulate_contact(indenters[k], pose, material, cam, sim)
+            except ContactError:
+                rejected += 1
+                break
+            depth[i] = s.depth_mm
+            disp[i] = s.vertices_mm - s.rest_vertices_mm
+            cid[i] = contact
+            ind[i] = names[k]
+            i += 1
+        contact += 1
+        if rejected > 50 * n + 100:
+            raise RuntimeError(
+                f"{rejected} poses rejected for {i} accepted: the indenters do not fit "
+                f"contact_radius_mm={spec.contact_radius_mm} with radius_max_mm={spec.radius_max_mm}; "
+                "use smaller indenters, a smaller radius_max_mm or a larger contact_radius_mm"
+            )
+    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic seed={spec.seed} rank={rank}")
+
+
+def load(cfg: DataConfig, rank: int = 0, world: int = 1) -> ContactData:
+    """The data of ``rank``: from the dataset folder or generated (and cached if asked)."""
+    if cfg.dataset_dir is not None:
+        return load_dataset_dir(cfg.dataset_dir, rank, world)
+    cache = None
+    if cfg.cache_file is not None:
+        cache = Path(cfg.cache_file)
+        if world > 1:
+            cache = cache.with_name(f"{cache.stem}_rank{rank}{cache.suffix}")
+        if cache.exists():
+            with np.load(cache) as d:
+                return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]))
+    data = generate(cfg.synthetic, rank)
+    if cache is not None:
+        from tactile_deploy.atomic import write_npz
+
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        write_npz(
+            cache, depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
+            contact_id=data.contact_id, indenter=data.indenter, source=np.array(data.source),
+        )
+    return data
+
+
+@dataclass(frozen=True)
+class Scales:
+    """depth_scale_mm: mean over samples of the largest depth; displacement_scale_mm (3,): RMS of
+    the displacement over free nodes, all axes (one isotropic scale, so the loss stays a mm^2 MSE)."""
+
+    depth_scale_mm: float
+    displacement_scale_mm: tuple[float, float, float]
+
+
+def compute_scales(data: ContactData, free_mask: np.ndarray) -> Scales:
+    d = float(np.mean(data.depth_mm.reshape(len(data), -1).max(axis=1)))
+    u = data.displacement_mm[:, free_mask.astype(bool)]
+    rms = float(np.sqrt(np.mean(u.astype(np.float64) ** 2)))
+    if not (d > 0 and rms > 0):
+        raise ValueError("the training data holds no contact (all depths or displacements are zero)")
+    return Scales(d, (rms, rms, rms))

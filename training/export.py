@@ -1,0 +1,337 @@
+"""ONNX export of the trained predictor: one graph depth (mm) -> vertices and displacement (mm).
+
+Data flow of :func:`export_run`::
+
+    run_dir/model.pt -> Predictor -> deploy module of the chosen variant (fold scales, restructure)
+      -> torch.onnx.export (dynamo, opset 18, dynamic batch) [-> int8 QDQ quantisation]
+      -> metadata (units, frames, mesh hash, training commit, dataset, ood_threshold)
+      -> parity on held-out depth maps -> model card (JSON + markdown)
+
+Every graph follows docs/onnx_contract.md: input ``depth`` [N, 1, 128, 128] float32 mm; outputs
+``vertices`` and ``displacement`` [N, 5380, 3] float32 mm (sensor frame) and ``ood_score`` [N]:
+the RMS difference (mm) between the depth map and the image VAE's reconstruction of it from its
+mean latent. The metadata's ``ood_threshold`` is the 99th percentile of that score on held-out
+(in-distribution) maps: above it a map is less typical than 99 % of them.
+
+Variants (``VARIANTS``):
+
+* ``naive``: the training modules as they are (COMA decoder, Chebyshev recursions as Gather tables);
+* ``fused``: the same function restructured (:mod:`training.fused`), exact to float rounding;
+* ``lean``: image encoder + projection + the lean grid decoder (:mod:`training.networks.grid_decoder`);
+* ``*-int8``: a variant with the image encoder, projection and decoder convolutions / GEMMs
+  quantised to int8 (static QDQ, calibrated on training depth maps; onnxruntime fuses them into
+  integer kernels). int8 graphs are checked against their fp32 graph by accuracy, not bit parity.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from training.networks.predictor import Predictor
+
+VARIANTS = ("naive", "fused", "lean", "fused-int8", "lean-int8")
+#: The variant written to the shipped file (best accuracy/speed pair, see bench/bench_predictor.py).
+SHIPPED_VARIANT = "lean-int8"
+OPSET = 18
+OUTPUTS = ["vertices", "displacement", "ood_score"]
+SENSOR_FAMILY = "gelslim"
+FRAME = (
+    "sensor frame: origin at the centre of the sensing surface, z up out of the gel, mm; "
+    "vertex order of the frozen pad mesh (node = layer * 1076 + i, layer 0 = sensing surface)"
+)
+DEPTH_DOC = (
+    "depth [N, 1, 128, 128] float32, mm the sensing surface is pushed in (>= 0); orthographic "
+    "camera over +-17.5 mm, pixel (row i, col j) centred at x = -17.5 + (j + 0.5) 0.2734, "
+    "y = 17.5 - (i + 0.5) 0.2734 mm (row 0 = largest y)"
+)
+
+
+# ----------------------------------------------------------------------------------------- graphs
+class DeployGraph(nn.Module):
+    """depth (N, 1, R, R) mm -> (vertices (N, n, 3) mm, displacement (N, n, 3) mm, ood_score (N,) mm).
+
+    Folded scales (exact up to float rounding): 1 / depth_scale into the first convolution
+    (conv(x / s) = (W / s) * x + b) and depth_scale into the image decoder's last layer.
+    """
+
+    def __init__(self, model: Predictor, decoder: nn.Module, out_scale: torch.Tensor | None):
+        super().__init__()
+        enc = copy.deepcopy(model.image_vae.encoder)
+        img_dec = copy.deepcopy(model.image_vae.decoder)
+        s = model.norm.depth_scale_mm.detach()
+        with torch.no_grad():
+            enc.convs[0].weight.div_(s)
+            last = img_dec.deconvs[-1]
+            last.weight.mul_(s)
+            last.bias.mul_(s)
+        self.convs, self.fc, self.mu = enc.convs, enc.fc, enc.mu
+        self.image_decoder = img_dec
+        self.projection = copy.deepcopy(model.projection)
+        self.decoder = decoder
+        self.register_buffer("rest", model.norm.rest_vertices_mm.clone())
+        if out_scale is None:
+            self.out_scale = None
+        else:
+            self.register_buffer("out_scale", out_scale)
+
+    def forward(self, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        z_image = self.mu(self.fc(self.convs(depth)))
+        d = self.decoder(self.projection(z_image))
+        if self.out_scale is not None:
+            d = d * self.out_scale
+        recon = self.image_decoder(z_image)
+        ood = torch.sqrt(torch.mean((recon - depth) ** 2, dim=(1, 2, 3)))
+        return self.rest + d, d, ood
+
+
+def deploy_module(model: Predictor, variant: str) -> DeployGraph:
+    """The fp32 torch module exported for ``variant`` (int8 variants start from their fp32 base)."""
+    base = variant.removesuffix("-int8")
+    model = model.eval()
+    scale_mask = (model.norm.displacement_scale_mm * model.norm.free_mask).detach().clone()
+    if base == "naive":
+        dec = copy.deepcopy(model.mesh_vae.decoder)
+        dec.graphs.set_use_tables(True)
+        return DeployGraph(model, dec, scale_mask).eval()
+    if base == "fused":
+        from training.fused import FusedComaDecoder
+
+        return DeployGraph(model, FusedComaDecoder(model.mesh_vae.decoder), scale_mask).eval()
+    if base == "lean":
+        dec = copy.deepcopy(model.lean_decoder)
+        last = dec.net[-1]
+        scale = model.norm.displacement_scale_mm.detach()
+        # channel 3 * layer + axis carries axis `axis`: fold the per-axis scale into the layer.
+        s = scale.repeat(dec.n_free_layers)
+        with torch.no_grad():
+            last.weight.mul_(s[None, :, None, None])
+            last.bias.mul_(s)
+        return DeployGraph(model, dec, None).eval()
+    raise ValueError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
+
+
+# ----------------------------------------------------------------------------------------- export
+def _onnx_export(
+    module: nn.Module, example: torch.Tensor, path: Path, inputs: list[str], outputs: list[str], optimize: bool = True
+) -> None:
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    prog = torch.onnx.export(
+        module, (example,), dynamo=True, opset_version=OPSET, input_names=inputs, output_names=outputs,
+        dynamic_shapes=({0: batch},), optimize=optimize, verbose=False,
+    )
+    prog.save(str(path))
+
+
+def quantise(fp32_path: Path, out_path: Path, calibration: np.ndarray, input_name: str = "depth") -> None:
+    """Static int8 QDQ quantisation of the Conv/Gemm/MatMul/ConvTranspose nodes that carry
+    weights (u8 activations, s8 per-channel weights, MinMax calibration on ``calibration``
+    (K, 1, R, R) mm). Gathers, reshapes and the Chebyshev tables stay float."""
+    import onnx
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+    model = onnx.load(str(fp32_path))
+    inits = {i.name for i in model.graph.initializer}
+    nodes = [
+        n.name for n in model.graph.node
+        if n.op_type in ("Conv", "Gemm", "ConvTranspose") or (n.op_type == "MatMul" and n.input[1] in inits)
+    ]
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter([{input_name: calibration[i : i + 1].astype(np.float32)} for i in range(len(calibration))])
+
+        def get_next(self):
+            return next(self.it, None)
+
+    import logging
+
+    level = logging.getLogger().level
+    logging.getLogger().setLevel(logging.ERROR)
+    try:
+        quantize_static(
+            str(fp32_path), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
+            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+            nodes_to_quantize=nodes, extra_options={"ActivationSymmetric": False},
+        )
+    finally:
+        logging.getLogger().setLevel(level)
+
+
+def make_session(path: str | Path, threads: int = 1):
+    """onnxruntime CPU session, ``threads`` intra-op threads, all graph optimisations."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def run_session(session, depth_mm: np.ndarray, batch: int = 32) -> tuple[np.ndarray, ...]:
+    outs = [session.run(None, {"depth": depth_mm[i : i + batch].astype(np.float32)}) for i in range(0, len(depth_mm), batch)]
+    return tuple(np.concatenate([o[k] for o in outs]) for k in range(len(outs[0])))
+
+
+def write_metadata(path: Path, props: dict[str, str]) -> None:
+    import onnx
+
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for k, v in props.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+    model.producer_name = "tactile-deploy training"
+    onnx.save(model, str(path))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def export_variant(
+    model: Predictor, variant: str, path: str | Path, calibration: np.ndarray | None = None, optimize: bool = True
+) -> Path:
+    """Write the ONNX graph of ``variant`` (no metadata) and return its path.
+
+    ``optimize``: run the exporter's graph optimiser (constant folding, ~8 s); onnxruntime
+    optimises again at load, so both give the same numbers."""
+    path = Path(path)
+    example = torch.zeros(2, 1, model.cfg.image.resolution, model.cfg.image.resolution)
+    module = deploy_module(model, variant)
+    if variant.endswith("-int8"):
+        if calibration is None:
+            raise ValueError(f"variant {variant!r} needs calibration depth maps")
+        fp32 = path.with_name(path.stem + ".fp32.tmp.onnx")
+        _onnx_export(module, example, fp32, ["depth"], OUTPUTS, optimize)
+        try:
+            quantise(fp32, path, calibration)
+        finally:
+            fp32.unlink(missing_ok=True)
+            Path(str(fp32) + ".data").unlink(missing_ok=True)
+    else:
+        _onnx_export(module, example, path, ["depth"], OUTPUTS, optimize)
+    return path
+
+
+@torch.no_grad()
+def torch_reference(model: Predictor, variant: str, depth_mm: np.ndarray, batch: int = 32):
+    """(displacement (K, n, 3) mm, ood_score (K,) mm) of the eager fp32 torch model of ``variant``."""
+    model.deploy_decoder = "lean" if variant.startswith("lean") else "coma"
+    disp, ood = [], []
+    try:
+        for i in range(0, len(depth_mm), batch):
+            x = torch.as_tensor(depth_mm[i : i + batch])
+            disp.append(model(x)[1].numpy())
+            ood.append(model.image_reconstruction_rmse(x).numpy())
+    finally:
+        model.deploy_decoder = "coma"
+    return np.concatenate(disp), np.concatenate(ood)
+
+
+def export_run(
+    run_dir: str | Path, out: str | Path, variant: str | None = None, n_parity: int = 128, optimize: bool = True
+) -> dict:
+    """Export a trained run: the shipped graph ``out``, the fp32 graph of the same weights
+    (``<stem>_fp32.onnx``, when the shipped one is int8) and the model card (``<stem>.json``,
+    ``<stem>.md``). Returns the card."""
+    from training.card import build_card, write_card
+    from training.train import load_bundle
+
+    run_dir, out = Path(run_dir), Path(out)
+    variant = variant or SHIPPED_VARIANT
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
+    model, bundle = load_bundle(run_dir / "model.pt")
+    held = np.load(run_dir / "heldout.npz")
+    depth = held["depth_mm"][:, None].astype(np.float32)
+    true = held["displacement_mm"]
+    t0 = time.perf_counter()
+    calibration = _calibration_maps(run_dir, depth) if variant.endswith("-int8") else None
+    export_variant(model, variant, out, calibration, optimize)
+    fp32_variant = variant.removesuffix("-int8")
+    ref_path = out.with_name(out.stem + "_fp32.onnx") if variant != fp32_variant else out
+    if ref_path != out:
+        export_variant(model, fp32_variant, ref_path, optimize=optimize)
+
+    # parity of the fp32 graph with torch, int8 against fp32, accuracy of the shipped graph
+    k = min(n_parity, len(depth))
+    ref_disp, ref_ood = torch_reference(model, variant, depth[:k])
+    _, fp32_disp, fp32_ood = run_session(make_session(ref_path), depth[:k])
+    parity = {
+        "graph": ref_path.name,
+        "n_inputs": k,
+        "max_abs_diff_mm": float(np.abs(fp32_disp - ref_disp).max()),
+        "ood_max_abs_diff_mm": float(np.abs(fp32_ood - ref_ood).max()),
+    }
+    _, final, final_ood = run_session(make_session(out), depth)
+    if ref_path != out:
+        parity["shipped_vs_fp32_max_abs_diff_mm"] = float(np.abs(final[:k] - fp32_disp).max())
+        parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final[:k] - fp32_disp) ** 2)))
+        parity["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(final_ood[:k] - fp32_ood).max())
+    err = (final - true).astype(np.float64)
+    accuracy = {
+        "n_samples": int(len(depth)),
+        "vertex_rmse_mm": float(np.sqrt(np.mean(err**2))),
+        "relative_error": float(np.linalg.norm(err) / np.linalg.norm(true)),
+        "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
+        "ood_score_p99_mm": float(np.quantile(final_ood, 0.99)),
+    }
+    ood_threshold = float(bundle["metrics"]["ood"]["recon_rmse_mm_p99"])
+    card = build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, time.perf_counter() - t0)
+    props = card_metadata(card)
+    for p in {out, ref_path}:
+        write_metadata(p, props | {"variant": variant if p == out else fp32_variant})
+    card = build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, time.perf_counter() - t0)
+    write_card(card, out.with_suffix(".json"), out.with_suffix(".md"))
+    return card
+
+
+def _calibration_maps(run_dir: Path, fallback: np.ndarray, n: int = 256) -> np.ndarray:
+    """Training depth maps for int8 calibration (never the held-out maps used for accuracy)."""
+    from training.config import TrainConfig
+    from training.data import load, split_by_contact
+
+    cfg = TrainConfig.model_validate(json.loads((run_dir / "config.json").read_text()))
+    try:
+        data = load(cfg.data)
+    except (FileNotFoundError, ValueError):
+        return fallback[:n]
+    tr, _ = split_by_contact(data.contact_id, cfg.data.val_fraction, cfg.data.split_seed)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(tr, size=min(n, len(tr)), replace=False)
+    return data.depth_mm[pick][:, None].astype(np.float32)
+
+
+def card_metadata(card: dict) -> dict[str, str]:
+    """ONNX metadata_props: what the runtime checks at load."""
+    return {
+        "format": "tactile-deploy.predictor/1",
+        "sensor_family": SENSOR_FAMILY,
+        "pad": card["pad"]["name"],
+        "mesh_hash": card["pad"]["mesh_hash"],
+        "n_nodes": str(card["pad"]["n_nodes"]),
+        "units": "mm",
+        "frame": FRAME,
+        "input.depth": DEPTH_DOC,
+        "output.vertices": "vertices [N, 5380, 3] float32, mm, deformed positions = rest + displacement",
+        "output.displacement": "displacement [N, 5380, 3] float32, mm, from the rest pad mesh",
+        "output.ood_score": "ood_score [N] float32, mm: RMS error of the image VAE's reconstruction of the depth map",
+        "ood_threshold": repr(card["ood_threshold_mm"]),
+        "training_commit": card["training"]["commit"],
+        "training_dirty": str(card["training"]["dirty"]).lower(),
+        "dataset": json.dumps(card["training"]["data"], sort_keys=True),
+        "ood_calibration": json.dumps(card["ood"], sort_keys=True),
+        "variant_accuracy": json.dumps(card["heldout_accuracy"], sort_keys=True),
+        "model_card": card["files"]["card_json"],
+    }

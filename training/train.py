@@ -1,0 +1,391 @@
+"""Training of the predictor: image VAE, mesh VAE, then the latent projection with both frozen.
+
+Data flow of :func:`train`::
+
+    config -> data of this rank -> split by contact (80/20) -> scales from the training part
+      -> stage "image_vae"    (MSE + lambda_I KL on normalised depth)
+      -> stage "mesh_vae"     (MSE + lambda_M KL on normalised displacement)
+      -> stage "lean_decoder" (optional: the deployment decoder, MSE from z ~ q(z | mesh), VAEs frozen)
+      -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen)
+      -> held-out evaluation of both decoders, OOD calibration
+      -> run_dir/model.pt, heldout.npz, metrics.json, history.json, learning_curves.png
+
+Every stage uses Adam (``lr``) with the learning rate multiplied by ``lr_decay`` after each epoch,
+checkpoints after every epoch (``run_dir/checkpoints/<stage>.pt``) and resumes from there: a
+finished stage is skipped when the same run is started again.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from training import distributed
+from training.config import StageConfig, TrainConfig
+from training.data import ContactData, compute_scales, load, split_by_contact
+from training.networks.coarsening import build_hierarchy
+from training.networks.image_vae import vae_loss
+from training.networks.predictor import Predictor
+
+BUNDLE_FORMAT = 1
+STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection")
+
+
+def git_commit(repo: Path | None = None) -> dict:
+    """{'commit': sha or 'unknown', 'dirty': bool} of the repository holding this package."""
+    repo = repo or Path(__file__).resolve().parents[1]
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = bool(
+            subprocess.run(
+                ["git", "status", "--porcelain", "--", "training"], cwd=repo, capture_output=True, text=True, check=True
+            ).stdout.strip()
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": "unknown", "dirty": True}
+    return {"commit": sha, "dirty": dirty}
+
+
+def build_model(cfg: TrainConfig) -> Predictor:
+    from tactile_deploy.pad.asset import load_pad
+
+    pad = load_pad()
+    hierarchy = build_hierarchy(pad, cfg.model.mesh.factors, cfg.model.mesh.pooling)
+    return Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
+
+
+class _Tensors:
+    """The rank's data as normalised tensors on the training device."""
+
+    def __init__(self, data: ContactData, model: Predictor, device: torch.device):
+        norm = model.norm
+        self.depth = torch.as_tensor(data.depth_mm[:, None]).to(device) / norm.depth_scale_mm.to(device)
+        disp = torch.as_tensor(data.displacement_mm).to(device)
+        self.disp = norm.to(device).normalise_displacement(disp) * norm.free_mask.to(device)
+        self.n = len(data)
+
+
+def _batches(n: int, batch: int, rng: np.random.Generator | None, n_batches: int | None = None):
+    order = rng.permutation(n) if rng is not None else np.arange(n)
+    chunks = [order[i : i + batch] for i in range(0, n, batch)]
+    return chunks if n_batches is None else chunks[:n_batches]
+
+
+def run_stage(
+    name: str,
+    module: torch.nn.Module,
+    step: Callable[[torch.nn.Module, np.ndarray, bool], tuple[torch.Tensor, dict]],
+    n_train: int,
+    n_val: int,
+    stage: StageConfig,
+    run_dir: Path,
+    dist: distributed.Dist,
+    device: torch.device,
+    seed: int,
+    log: Callable[[str], None],
+) -> list[dict]:
+    """Train ``module`` with ``step(module, batch_indices, train) -> (loss, metrics)``; return history."""
+    ckpt = run_dir / "checkpoints" / f"{name}.pt"
+    wrapped = distributed.wrap(module, dist, device)
+    opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=stage.lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=stage.lr_decay)
+    history: list[dict] = []
+    start = 0
+    if ckpt.exists():
+        state = torch.load(ckpt, map_location=device, weights_only=False)
+        module.load_state_dict(state["module"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        history, start = state["history"], state["epoch"]
+        if start >= stage.epochs:
+            log(f"[{name}] complete in {ckpt}, skipped")
+            return history
+        log(f"[{name}] resuming after epoch {start}")
+    n_batches = distributed.reduce_min(-(-n_train // stage.batch_size), dist, device)
+    n_val_batches = distributed.reduce_min(-(-n_val // stage.batch_size), dist, device)
+    for epoch in range(start, stage.epochs):
+        t0 = time.perf_counter()
+        module.train()
+        rng = np.random.default_rng([seed, dist.rank, STAGES.index(name), epoch])
+        sums: dict[str, float] = {}
+        count = 0
+        for idx in _batches(n_train, stage.batch_size, rng, n_batches):
+            loss, metrics = step(wrapped, idx, True)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            for k, v in metrics.items():
+                sums[k] = sums.get(k, 0.0) + v * len(idx)
+            count += len(idx)
+        module.eval()
+        vsums: dict[str, float] = {}
+        vcount = 0
+        with torch.no_grad():
+            for idx in _batches(n_val, stage.batch_size, None, n_val_batches):
+                _, metrics = step(wrapped, idx, False)
+                for k, v in metrics.items():
+                    vsums[k] = vsums.get(k, 0.0) + v * len(idx)
+                vcount += len(idx)
+        keys = sorted(sums)
+        tot = distributed.reduce_sum(np.array([sums[k] for k in keys] + [count]), dist, device)
+        vtot = distributed.reduce_sum(np.array([vsums[k] for k in keys] + [vcount]), dist, device)
+        rec = {"epoch": epoch + 1, "lr": opt.param_groups[0]["lr"], "seconds": time.perf_counter() - t0}
+        rec.update({f"train_{k}": tot[i] / tot[-1] for i, k in enumerate(keys)})
+        rec.update({f"val_{k}": vtot[i] / max(vtot[-1], 1) for i, k in enumerate(keys)})
+        history.append(rec)
+        sched.step()
+        log(
+            f"[{name}] epoch {epoch + 1}/{stage.epochs} train loss {rec['train_loss']:.4g} "
+            f"val loss {rec['val_loss']:.4g} ({rec['seconds']:.1f} s)"
+        )
+        if dist.is_main:
+            ckpt.parent.mkdir(parents=True, exist_ok=True)
+            state = {
+                "module": module.state_dict(), "optimizer": opt.state_dict(),
+                "scheduler": sched.state_dict(), "history": history, "epoch": epoch + 1,
+            }
+            tmp = ckpt.with_suffix(".partial")
+            torch.save(state, tmp)
+            tmp.replace(ckpt)
+    return history
+
+
+def _freeze(module: torch.nn.Module) -> None:
+    module.eval()
+    for p in module.parameters():
+        p.requires_grad_(False)
+
+
+def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
+    """Run all stages of ``cfg``; returns the metrics (also written to ``run_dir/metrics.json``)."""
+    dist, device = distributed.init(cfg.device)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    run_dir = Path(cfg.run_dir)
+    if dist.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg)
+
+    t0 = time.perf_counter()
+    data = load(cfg.data, dist.rank, dist.world)
+    log(f"data: {len(data)} samples from {data.source} ({time.perf_counter() - t0:.1f} s)")
+    tr_idx, va_idx = split_by_contact(data.contact_id, cfg.data.val_fraction, cfg.data.split_seed)
+    train_data, val_data = data.subset(tr_idx), data.subset(va_idx)
+    free = model.norm.free_mask.numpy()[:, 0]
+    scales = compute_scales(train_data, free)
+    if dist.active:  # every rank uses the same scales
+        s = distributed.reduce_sum(np.array([scales.depth_scale_mm, *scales.displacement_scale_mm]), dist, device) / dist.world
+        scales = type(scales)(float(s[0]), tuple(float(v) for v in s[1:]))
+    model.norm.set_scales(scales.depth_scale_mm, scales.displacement_scale_mm)
+    model.to(device)
+    tr, va = _Tensors(train_data, model, device), _Tensors(val_data, model, device)
+    scale_mm = float(scales.displacement_scale_mm[0])
+
+    def pick(t: _Tensors, train: bool):
+        return t if train else va
+
+    # -- stage 1: image VAE ------------------------------------------------------------------
+    s1 = cfg.image_vae
+
+    def image_step(m, idx, train):
+        x = pick(tr, train).depth[idx]
+        recon, mu, logvar = m(x, sample=train)
+        loss, metrics = vae_loss(x, recon, mu, logvar, s1.kl_weight)
+        metrics["rmse_mm"] = float(torch.sqrt(torch.mean((recon - x) ** 2))) * scales.depth_scale_mm
+        return loss, metrics
+
+    hist = {}
+    hist["image_vae"] = run_stage("image_vae", model.image_vae, image_step, tr.n, va.n, s1, run_dir, dist, device, cfg.seed, log)
+
+    # -- stage 2: mesh VAE -------------------------------------------------------------------
+    s2 = cfg.mesh_vae
+    mask = model.norm.free_mask
+
+    def mesh_step(m, idx, train):
+        x = pick(tr, train).disp[idx]
+        recon, mu, logvar = m(x, sample=train)
+        loss, metrics = vae_loss(x, recon * mask, mu, logvar, s2.kl_weight)
+        metrics["rmse_mm"] = float(torch.sqrt(torch.tensor(metrics["mse"]))) * scale_mm
+        return loss, metrics
+
+    hist["mesh_vae"] = run_stage("mesh_vae", model.mesh_vae, mesh_step, tr.n, va.n, s2, run_dir, dist, device, cfg.seed, log)
+
+    # -- VAEs frozen from here on ----------------------------------------------------------
+    _freeze(model.image_vae)
+    _freeze(model.mesh_vae)
+    with torch.no_grad():
+        for t in (tr, va):
+            t.z_image = torch.cat([model.image_vae.encoder(t.depth[i])[0] for i in _batches(t.n, 256, None)])
+            enc = [model.mesh_vae.encoder(t.disp[i]) for i in _batches(t.n, 256, None)]
+            t.z_mesh = torch.cat([e[0] for e in enc])
+            t.z_mesh_logvar = torch.cat([e[1] for e in enc])
+
+    # -- stage 3 (optional): lean deployment decoder on the same latent space ---------------
+    s4 = cfg.lean_decoder
+    if s4 is not None:
+
+        def lean_step(m, idx, train):
+            t = pick(tr, train)
+            z = t.z_mesh[idx]
+            if train:  # the mesh VAE decoder's training distribution: z ~ q(z | mesh)
+                z = z + torch.randn_like(z) * torch.exp(0.5 * t.z_mesh_logvar[idx])
+            mse = torch.mean((m(z) * mask - t.disp[idx]) ** 2)
+            return mse, {"loss": float(mse), "mse": float(mse), "rmse_mm": float(torch.sqrt(mse)) * scale_mm}
+
+        hist["lean_decoder"] = run_stage(
+            "lean_decoder", model.lean_decoder, lean_step, tr.n, va.n, s4, run_dir, dist, device, cfg.seed, log
+        )
+        _freeze(model.lean_decoder)
+
+    # -- stage 4: latent projection through the frozen mesh decoder -------------------------
+    s3 = cfg.projection
+    decoder = model.mesh_vae.decoder
+
+    def proj_step(m, idx, train):
+        t = pick(tr, train)
+        z = m(t.z_image[idx])
+        pred = decoder(z) * mask
+        mse = torch.mean((pred - t.disp[idx]) ** 2)
+        lat = torch.mean((z - t.z_mesh[idx]) ** 2)
+        loss = mse + s3.latent_weight * lat
+        return loss, {"loss": float(loss), "mse": float(mse), "latent_mse": float(lat),
+                      "rmse_mm": float(torch.sqrt(mse)) * scale_mm}
+
+    hist["projection"] = run_stage("projection", model.projection, proj_step, tr.n, va.n, s3, run_dir, dist, device, cfg.seed, log)
+
+    # -- evaluation, OOD calibration, bundle -------------------------------------------------
+    model.eval()
+    decoders = ("coma", "lean") if s4 is not None else ("coma",)
+    metrics = {"decoders": {}}
+    for name in decoders:
+        model.deploy_decoder = name
+        metrics["decoders"][name] = {
+            "heldout": evaluate(model, val_data, device),
+            "train": evaluate(model, train_data.subset(np.arange(min(len(train_data), len(val_data)))), device),
+        }
+    model.deploy_decoder = "coma"
+    metrics.update(metrics["decoders"]["coma"]["heldout"])
+    metrics["scales"] = asdict(scales)
+    metrics["data"] = {"train": train_data.summary(), "val": val_data.summary()}
+    log(
+        f"held-out: vertex RMSE {metrics['vertex_rmse_mm']:.4f} mm, relative error "
+        f"{metrics['relative_error']:.3f}, max error {metrics['max_error_mm']:.3f} mm"
+    )
+    if dist.is_main:
+        bundle = {
+            "format_version": BUNDLE_FORMAT,
+            "config": cfg.model_dump(mode="json"),
+            "state_dict": {k: v.cpu() for k, v in model.state_dict().items()},
+            "mesh_hash": model.mesh_vae.graphs.hierarchy.mesh_hash,
+            "metrics": metrics,
+            "history": hist,
+            "git": git_commit(),
+            "created_unix": time.time(),
+        }
+        torch.save(bundle, run_dir / "model.pt")
+        n_keep = min(len(val_data), 512)
+        from tactile_deploy.atomic import write_json, write_npz
+
+        write_npz(
+            run_dir / "heldout.npz", depth_mm=val_data.depth_mm[:n_keep],
+            displacement_mm=val_data.displacement_mm[:n_keep], indenter=val_data.indenter[:n_keep],
+        )
+        write_json(run_dir / "metrics.json", metrics)
+        (run_dir / "history.json").write_text(json.dumps(hist, indent=1))
+        plot_curves(hist, run_dir / "learning_curves.png")
+    distributed.barrier(dist)
+    return metrics
+
+
+@torch.no_grad()
+def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: int = 64) -> dict:
+    """Held-out figures of the image-to-mesh path (mm, sensor frame) and the OOD calibration.
+
+    vertex_rmse_mm: RMS over samples, nodes and axes of predicted - true vertex positions (the
+    paper's metric); relative_error: ||pred - true|| / ||true|| of the displacements over the set;
+    mesh_reconstruction_*: the same for the mesh VAE alone (true mesh -> latent mean -> decoder),
+    the floor the image-to-mesh path can reach with this decoder.
+    ood: quantiles of the image VAE reconstruction RMSE (mm) on these in-distribution maps.
+    """
+    model.eval()
+    err2 = true2 = rec_err2 = 0.0
+    max_err = 0.0
+    recon = []
+    n = 0
+    for i in range(0, len(data), batch):
+        depth = torch.as_tensor(data.depth_mm[i : i + batch, None]).to(device)
+        true = torch.as_tensor(data.displacement_mm[i : i + batch]).to(device)
+        _, disp = model(depth)
+        e = (disp - true).double()
+        z_true = model.mesh_vae.encoder(model.norm.normalise_displacement(true))[0]
+        er = (model.decode_displacement(z_true) - true).double()
+        rec_err2 = rec_err2 + float((er**2).sum())
+        err2 += float((e**2).sum())
+        true2 += float((true.double() ** 2).sum())
+        max_err = max(max_err, float(e.norm(dim=-1).max()))
+        recon.append(model.image_reconstruction_rmse(depth).cpu().numpy())
+        n += e.numel()
+    rec = np.concatenate(recon)
+    return {
+        "n_samples": len(data),
+        "vertex_rmse_mm": float(np.sqrt(err2 / n)),
+        "relative_error": float(np.sqrt(err2 / true2)),
+        "max_error_mm": max_err,
+        "mesh_reconstruction_rmse_mm": float(np.sqrt(rec_err2 / n)),
+        "mesh_reconstruction_relative_error": float(np.sqrt(rec_err2 / true2)),
+        "ood": {
+            "recon_rmse_mm_p50": float(np.quantile(rec, 0.5)),
+            "recon_rmse_mm_p95": float(np.quantile(rec, 0.95)),
+            "recon_rmse_mm_p99": float(np.quantile(rec, 0.99)),
+            "recon_rmse_mm_max": float(rec.max()),
+        },
+    }
+
+
+def plot_curves(history: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(history), figsize=(4.2 * len(history), 3.4))
+    for ax, (name, hist) in zip(np.atleast_1d(axes), history.items()):
+        if not hist:
+            continue
+        ep = [h["epoch"] for h in hist]
+        ax.semilogy(ep, [h["train_rmse_mm"] for h in hist], label="train")
+        ax.semilogy(ep, [h["val_rmse_mm"] for h in hist], label="held-out")
+        ax.set_title(name)
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("RMSE, mm" + (" (depth)" if name == "image_vae" else " (displacement)"))
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]:
+    """Rebuild the trained predictor from ``model.pt`` (checks the pad mesh hash)."""
+    bundle = torch.load(path, map_location=device, weights_only=False)
+    if bundle.get("format_version") != BUNDLE_FORMAT:
+        raise ValueError(f"{path}: bundle format {bundle.get('format_version')} is not {BUNDLE_FORMAT}")
+    cfg = TrainConfig.model_validate(bundle["config"])
+    model = build_model(cfg)
+    if model.mesh_vae.graphs.hierarchy.mesh_hash != bundle["mesh_hash"]:
+        raise ValueError(
+            f"{path} was trained on pad mesh {bundle['mesh_hash'][:12]}..., the shipped pad is "
+            f"{model.mesh_vae.graphs.hierarchy.mesh_hash[:12]}...; retrain for this pad"
+        )
+    model.load_state_dict(bundle["state_dict"])
+    model.eval()
+    return model, bundle
