@@ -121,21 +121,54 @@ def synthetic(tmp_path_factory):
 
 
 def test_stages_compose_to_the_shading_module(synthetic):
-    """rectify -> subtract_reference -> shading_gradients equals DepthFromShading's gradients
-    on the rectified frame, and each stage can be called alone."""
+    """rectify -> resample -> subtract_reference -> shading_gradients equals DepthFromShading's
+    gradients on the rectified frame, and each stage can be called alone."""
     pipe = ImagingPipeline.from_plugin(synthetic)
     frame = blob_frame(synthetic.reference_frame)
-    from tactile_deploy.imaging.camera_mapping import rectify
-
-    rect = rectify(frame, synthetic.manifest.camera, pipe.remap)
-    ref_rect = rectify(synthetic.reference_frame, synthetic.manifest.camera, pipe.remap)
+    rect = pipe.rectify(frame)
+    ref_rect = pipe.rectify(synthetic.reference_frame)
     g_col, g_row = shading_gradients(subtract_reference(rect, pipe.tables), rect, pipe.tables)
     e_col, e_row = DepthFromShading(synthetic.shading_model, ref_rect).image_gradients(rect)
     assert np.array_equal(g_col, e_col) and np.array_equal(g_row, e_row)
     laps = Laps().start()
     pipe.frame_to_depth(frame, laps)
-    assert list(laps.times_ns) == ["check", "rectify", "reference", "shading", "poisson",
-                                   "depth_grid"]
+    assert list(laps.times_ns) == ["check", "rectify", "resample", "reference", "shading",
+                                   "poisson", "depth_grid"]
+
+
+def test_rectification_averages_each_cell():
+    """Supersampled rectification = the mean of the point samples inside each grid cell, checked
+    against point sampling at the sub-cell centres (an independent remap per sub-cell)."""
+    from test_runtime_support import make_camera, make_reference
+
+    from tactile_deploy.imaging.camera_mapping import rectify
+    from tactile_deploy.runtime.pipeline import (
+        Rectifier,
+        default_supersample,
+        rectify_frame,
+        resample_to_grid,
+    )
+
+    cam = make_camera()
+    assert default_supersample(cam) == 2          # 0.273 mm cells over 0.075 mm pixels: capped
+    frame = make_reference(5)
+    frame = np.ascontiguousarray(np.clip(frame.astype(int) + np.random.default_rng(0).integers(
+        -30, 30, frame.shape), 0, 255).astype(np.uint8))
+    r = Rectifier(cam, 2)
+    out = resample_to_grid(rectify_frame(frame, r), r).astype(float)
+    g = cam.grid
+    sub = []
+    for dy in (-0.25, 0.25):
+        for dx in (-0.25, 0.25):
+            shifted = g.model_copy(update={"x_min_mm": g.x_min_mm + dx * g.pitch_x_mm,
+                                           "x_max_mm": g.x_max_mm + dx * g.pitch_x_mm,
+                                           "y_min_mm": g.y_min_mm + dy * g.pitch_y_mm,
+                                           "y_max_mm": g.y_max_mm + dy * g.pitch_y_mm})
+            sub.append(rectify(frame, cam.model_copy(update={"grid": shifted})).astype(float))
+    mean = np.mean(sub, axis=0)
+    assert np.abs(out - mean).max() <= 1.5          # uint8 rounding of both, 1/32 px table steps
+    assert np.abs(out - mean).mean() < 0.3
+    assert Rectifier(cam, 1).supersample == 1
 
 
 def test_noise_reference_handling(synthetic):

@@ -12,6 +12,7 @@ from test_runtime_support import (
     build_linear_onnx,
     build_test_plugin,
     linear_reference,
+    wait_for_subscription,
 )
 
 from tactile_deploy.runtime.pipeline import FrameError
@@ -196,7 +197,7 @@ def test_publisher_message_format_and_topology(model):
     v = (topo.rest_vertices_mm + rng.normal(0, 0.01, topo.rest_vertices_mm.shape)).astype(np.float32)
     with MeshPublisher("tcp://127.0.0.1:*", "testsensor", topo, hwm=100) as pub:
         with MeshSubscriber(pub.endpoint, "testsensor") as sub:
-            time.sleep(0.3)                                  # slow joiner
+            wait_for_subscription(pub, sub)
             msgs = []
             for i in range(5):
                 pub.publish(v, frame_index=i, t_capture_ns=time.time_ns(), latency_ms=1.5,

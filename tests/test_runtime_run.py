@@ -19,7 +19,12 @@ import meshio
 import numpy as np
 import pytest
 import trimesh
-from test_runtime_support import FakeCapture, blob_frame, build_test_plugin
+from test_runtime_support import (
+    FakeCapture,
+    blob_frame,
+    build_test_plugin,
+    wait_for_subscription,
+)
 from typer.testing import CliRunner
 
 from tactile_deploy.cli.main import app
@@ -191,11 +196,11 @@ def test_publishing_during_a_run(plugin, predictor):
     forces = ForceEstimator(stiff, 1.0, predictor.topology.rest_vertices_mm, np.ones(n))
     pub = MeshPublisher("tcp://127.0.0.1:*", "testsensor", predictor.topology, hwm=100)
     with MeshSubscriber(pub.endpoint, "testsensor") as sub:
-        time.sleep(0.3)
+        wait_for_subscription(pub, sub)
         summary = Runner(predictor, _clip_source(plugin), RunOptions(), forces=forces,
                          publisher=pub).run()
         got = []
-        while (m := sub.recv(300)) is not None:
+        while (m := sub.recv(1000)) is not None:
             got.append(m)
     meshes = [m for m in got if m[0] == "mesh/testsensor"]
     assert summary.published == 6 and len(meshes) == 6

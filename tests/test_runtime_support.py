@@ -220,6 +220,20 @@ class FakeCapture:
         self.opened = False
 
 
+def wait_for_subscription(pub, sub, timeout_s: float = 10.0) -> None:
+    """ZeroMQ's slow joiner: send topology messages until the subscriber gets one."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        pub.send_topology()
+        if sub.recv(100) is not None:
+            while sub.recv(50) is not None:        # drain the probes
+                pass
+            return
+    raise AssertionError("the subscriber never connected")
+
+
 # ------------------------------------------------------------------------------------ tests
 def test_linear_onnx_matches_its_numpy_reference(tmp_path):
     import onnxruntime as ort
