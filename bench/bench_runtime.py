@@ -92,8 +92,10 @@ def reference_imaging(plugin):
     return depth
 
 
-def torch_reference(model_path):
-    """A torch callable of the same network (eager, one thread), or (None, reason)."""
+def torch_reference(model_path, bundle: Path | None = None):
+    """The same network in torch (eager, fp32, one thread): ``(callable, description)``, or
+    ``(None, reason)``. The training bundle (``model.pt``) is ``bundle``, else the newest
+    ``out/predictor/*/model.pt`` of this checkout (where ``python -m training train`` writes)."""
     try:
         import onnxruntime as ort
         import torch
@@ -101,29 +103,32 @@ def torch_reference(model_path):
         return None, f"torch not installed ({e})"
     meta = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"]
                                 ).get_modelmeta().custom_metadata_map
-    bundle = meta.get("torch_bundle")
-    if not bundle:
-        return None, "the model's metadata names no torch bundle (key 'torch_bundle')"
-    path = Path(bundle)
-    if not path.is_absolute():
-        path = Path(model_path).parent / path
-    if not path.is_file():
-        return None, f"torch bundle {path} not found"
+    if bundle is None:
+        found = sorted((ROOT / "out" / "predictor").glob("*/model.pt"),
+                       key=lambda p: p.stat().st_mtime)
+        if not found:
+            return None, "no training bundle (out/predictor/*/model.pt; --torch-bundle PATH)"
+        bundle = found[-1]
     try:
+        from training.export import deploy_module
         from training.train import load_bundle
     except ImportError as e:
         return None, f"training package not importable ({e})"
     torch.set_num_threads(1)
-    model, _ = load_bundle(path)
+    model, info = load_bundle(bundle)
+    if info["mesh_hash"] != meta.get("mesh_hash"):
+        return None, f"{bundle} is for another mesh than the ONNX model"
+    variant = meta.get("variant", "lean")
+    module = deploy_module(model, variant)
 
     @torch.no_grad()
     def run(depth):
-        return model(torch.as_tensor(depth))
+        return module(torch.as_tensor(depth))
 
-    return run, str(path)
+    return run, f"{bundle.relative_to(ROOT) if bundle.is_relative_to(ROOT) else bundle} ({variant.removesuffix('-int8')}, fp32)"
 
 
-def run(plugin_name: str, frames: int, memory_frames: int) -> dict:
+def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | None = None) -> dict:
     import cv2
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -177,7 +182,7 @@ def run(plugin_name: str, frames: int, memory_frames: int) -> dict:
     depths = [(pipe.frame_to_depth(f)[None, None],) for (f,) in sample[:200]]
     ort_ms = time_calls(predictor.infer, depths)
     res["model"] = {"onnxruntime_p50_ms": pct(ort_ms, 50)}
-    ref_fn, info = torch_reference(predictor.model_path)
+    ref_fn, info = torch_reference(predictor.model_path, torch_bundle)
     if ref_fn is None:
         res["model"]["torch"] = f"not measured: {info}"
     else:
@@ -250,7 +255,8 @@ def markdown(r: dict) -> str:
         f"| {im['ours_p50_ms']:.3f} ms | {im['reference_p50_ms']:.3f} ms | {im['ratio']:.1f} x |",
     ]
     if "torch_p50_ms" in md:
-        lines.append(f"| model: onnxruntime vs torch eager, one thread | {md['onnxruntime_p50_ms']:.3f} ms"
+        lines.append(f"| model: onnxruntime ({r['model_file']}) vs torch eager ({md['torch_bundle']}), "
+                     f"one thread | {md['onnxruntime_p50_ms']:.3f} ms"
                      f" | {md['torch_p50_ms']:.3f} ms | {md['ratio']:.1f} x |")
     else:
         lines.append(f"| model: onnxruntime | {md['onnxruntime_p50_ms']:.3f} ms | {md['torch']} | - |")
@@ -276,6 +282,8 @@ def main(argv=None) -> int:
     ap.add_argument("--plugin", default="gelslim2")
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--memory-frames", type=int, default=100_000)
+    ap.add_argument("--torch-bundle", type=Path, default=None,
+                    help="training bundle (model.pt) of the model, for the torch reference")
     ap.add_argument("--small", action="store_true", help="a quick run (300 frames, 2,000 for memory)")
     ap.add_argument("--no-write", action="store_true", help="print, do not update BENCHMARKS.md")
     args = ap.parse_args(argv)
@@ -283,7 +291,7 @@ def main(argv=None) -> int:
         args.frames, args.memory_frames = 300, 2000
     import json
 
-    res = run(args.plugin, args.frames, args.memory_frames)
+    res = run(args.plugin, args.frames, args.memory_frames, args.torch_bundle)
     print(json.dumps(res, indent=2))
     md = markdown(res)
     print(md)
