@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import signal
 import sys
+import time
 from pathlib import Path
 
 import typer
@@ -128,11 +129,15 @@ def run_command(
                          preview_dir=preview_dir or out_dir, forces=forces,
                          max_frames=max_frames, realtime=realtime, colour_max_mm=colour_max_mm)
     live = err_console.is_terminal
+    last_line = [0.0]
 
     def status(line: str) -> None:
-        if live:
+        if live:          # one line, rewritten in place
             err_console.file.write("\r" + line[: err_console.width - 1].ljust(err_console.width - 1))
             err_console.file.flush()
+        elif time.monotonic() - last_line[0] >= 5.0:   # logs: a line every 5 s
+            last_line[0] = time.monotonic()
+            print(line, file=sys.stderr, flush=True)
 
     runner = Runner(predictor, src, options, forces=estimator, publisher=publisher,
                     status=status, sensor=plugin.name)
