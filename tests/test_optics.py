@@ -63,6 +63,26 @@ def test_renderer_matches_direct_per_light_implementation():
     assert np.abs(fast - r.radiance(r.flat_height())).max() > 20.0
 
 
+def test_features_render_where_the_camera_mapping_projects_them():
+    """A symmetric dent under an overhead light images centred on the pixel that
+    ``sensor_mm_to_pixels`` gives for its centre (lens distortion and perspective included)."""
+    from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
+
+    cam = simple_camera(320, 240, 0.06, k1=-0.2, tilt=(3e-5, 2e-5), rotation_deg=7.0)
+    model = OpticsModel(camera=cam, lights=(Light(elevation_deg=90.0, colour_grey=(200, 0, 0)),))
+    r = OpticsRenderer(model)
+    flat = r.radiance(r.flat_height())[..., 0]
+    v, u = np.mgrid[0:240, 0:320]
+    for c in ((0.0, 0.0), (5.0, 3.0), (-4.0, -3.5)):
+        img = r.radiance(bump(r.grid, centre=c, depth_mm=0.3, sigma_mm=0.5))[..., 0]
+        mag = np.abs(img - flat)
+        w = np.where(mag > 0.2 * mag.max(), mag, 0.0)
+        got = np.array([(w * u).sum() / w.sum(), (w * v).sum() / w.sum()])
+        want = sensor_mm_to_pixels(np.array([c]), cam)[0]
+        # (the lens magnifies one side of the blob more: centroid bias of a fraction of a px)
+        assert np.linalg.norm(got - want) < 0.3, (c, got, want)
+
+
 def test_flat_surface_is_ambient_plus_lights_at_their_elevation():
     """Flat pad, directional light, no vignetting/texture: gain x (ambient + colour sin(el))."""
     cam = simple_camera(64, 48, 0.2)

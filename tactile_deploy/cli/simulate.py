@@ -44,6 +44,8 @@ def simulate_command(
     depth_range: str = typer.Option("0.2,1.2", "--depth-range", help="Batch mode: min,max depth, mm."),
     workers: int = typer.Option(2, "--workers", help="Batch mode: worker processes."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output file."),
+    sensor: Optional[str] = typer.Option(None, "--sensor", help="Virtual sensor (name, see docs/optics.md, or .json): its material and effects replace --E --nu --mu --friction; one contact only."),
+    rgb: bool = typer.Option(False, "--rgb", help="With --sensor: render the camera frame into the .npz ('frame', (H, W, 3) uint8 RGB) and a PNG beside it (noise from --seed)."),
 ) -> None:
     """Simulate one indenter contact (FEM + depth camera), or generate a dataset with --n."""
     from pydantic import ValidationError
@@ -56,6 +58,18 @@ def simulate_command(
         material = Material(E_mpa=E, nu=nu, mu=mu, friction=friction)
     except ValidationError as exc:
         fail(f"invalid material: {exc.errors()[0]['loc'][0]}: {exc.errors()[0]['msg']}")
+    if rgb and sensor is None:
+        fail("--rgb renders a virtual sensor's camera frame: give --sensor NAME as well")
+    if sensor is not None:
+        if n is not None:
+            fail("--sensor simulates one contact; leave out --n")
+        if indenter is None:
+            fail("give --indenter NAME|PATH for the contact")
+        from tactile_deploy.sensors.cli import single_sensor_contact
+
+        single_sensor_contact(sensor, rgb, seed, indenter, pressing_face, x, y, theta, depth,
+                              out, overwrite)
+        return
     if n is None:
         if indenter is None:
             fail("give --indenter NAME|PATH for one contact, or --n N for a dataset")

@@ -50,6 +50,8 @@ class ContactSample:
     contact_mask : (n_plane,) bool, sensing nodes in contact
     pressure_kpa : (n_plane,) float32
     metadata : dict (indenter, pose, material, mesh hash, generator version)
+    frame : (H, W, 3) uint8 RGB camera frame of a virtual sensor, or None
+        (``tactile_deploy.sensors.VirtualSensor.contact_sample``)
     """
 
     depth_mm: np.ndarray
@@ -61,10 +63,12 @@ class ContactSample:
     contact_mask: np.ndarray
     pressure_kpa: np.ndarray
     metadata: dict = field(default_factory=dict)
+    frame: np.ndarray | None = None
 
     def npz_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays of the ``simulate --out FILE.npz`` format (metadata as a JSON string)."""
-        return {
+        """Arrays of the ``simulate --out FILE.npz`` format (metadata as a JSON string; ``frame``
+        only when a virtual sensor rendered one)."""
+        arrays = {
             "depth": self.depth_mm,
             "depth_detail": self.depth_detail_mm,
             "mask": self.mask,
@@ -75,6 +79,9 @@ class ContactSample:
             "pressure_kpa": self.pressure_kpa,
             "metadata": np.array(json.dumps(self.metadata)),
         }
+        if self.frame is not None:
+            arrays["frame"] = self.frame
+        return arrays
 
 
 @functools.lru_cache(maxsize=8)
