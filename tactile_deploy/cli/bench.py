@@ -20,6 +20,7 @@ BENCHMARKS = {
     "sim": "bench_sim.py",
     "sim-gpu": "bench_sim_gpu.py",
     "shading": "bench_shading.py",
+    "optics": "bench_optics.py",
     "predictor": "bench_predictor.py",
     "runtime": "bench_runtime.py",
 }

@@ -283,11 +283,10 @@ class OpticsRenderer:
         sl = (slice(v0, v1), slice(u0, u1))
         s = self.sample_surface(height_mm, (v0, v1, u0, u1))
         z, fx, fy = cv2.split(s)
-        inv_norm = cv2.magnitude(fx, fy)
-        cv2.multiply(inv_norm, inv_norm, dst=inv_norm)
+        inv_norm = cv2.multiply(fx, fx)
+        cv2.accumulateSquare(fy, inv_norm)
         inv_norm += 1.0
-        cv2.sqrt(inv_norm, dst=inv_norm)
-        cv2.divide(1.0, inv_norm, dst=inv_norm)
+        cv2.pow(inv_norm, -0.5, dst=inv_norm)
         out = [a[sl].copy() for a in self._ambient]
         dot = np.empty_like(z)
         tmp = np.empty_like(z)
@@ -299,23 +298,20 @@ class OpticsRenderer:
                 # light vector (lx, ly, pz - z); n.l |n| = f_x lx + f_y ly - (pz - z)
                 lz = lt["pz"] - z
                 cv2.multiply(fx, lt["lx"][sl], dst=dot)
-                cv2.multiply(fy, lt["ly"][sl], dst=tmp)
-                dot += tmp
+                cv2.accumulateProduct(fy, lt["ly"][sl], dot)
                 dot -= lz
-                cv2.multiply(dot, inv_norm, dst=dot)
                 cv2.multiply(lz, lz, dst=tmp)
                 tmp += lt["rxy2"][sl]                       # r^2
-                r3 = cv2.sqrt(tmp)
-                cv2.multiply(r3, tmp, dst=r3)               # r^3
-                cv2.divide(dot, r3, dst=dot)
+                cv2.pow(tmp, -1.5, dst=tmp)                 # 1 / r^3
+                cv2.multiply(dot, tmp, dst=dot)
+                cv2.multiply(dot, inv_norm, dst=dot)
             np.maximum(dot, 0.0, out=dot)
             for c in range(3):
                 cv2.accumulateProduct(dot, lt["w"][c][sl], out[c])
             spec = lt.get("spec")
             if spec is not None:
                 cv2.multiply(fx, spec["hx"][sl], dst=dot)
-                cv2.multiply(fy, spec["hy"][sl], dst=tmp)
-                dot += tmp
+                cv2.accumulateProduct(fy, spec["hy"][sl], dot)
                 dot += spec["hc"][sl]
                 cv2.multiply(dot, inv_norm, dst=dot)
                 np.maximum(dot, 0.0, out=dot)
@@ -388,6 +384,8 @@ class OpticsRenderer:
         h, w = self.shape
         p = self._pad
         v0, v1, u0, u1 = roi
+        if (v1 - v0) * (u1 - u0) > 0.8 * h * w:  # most of the frame: shade it all, no pasting
+            return self._blur(self.radiance(height_mm)), (0, h, 0, w)
         e = (max(v0 - p, 0), min(v1 + p, h), max(u0 - p, 0), min(u1 + p, w))
         full = self.rest_radiance
         f0 = (max(e[0] - p, 0), min(e[1] + p, h), max(e[2] - p, 0), min(e[3] + p, w))
