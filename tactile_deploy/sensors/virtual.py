@@ -18,7 +18,7 @@ fine depth map the frame was shaded from, the deformed mesh and the force.
 As a frame source the sensor follows the LeRobot camera pattern: ``connect()`` / ``read()`` /
 ``disconnect()`` (or ``with sensor:``), frames at the camera's ``fps`` from a scripted contact
 sequence (:class:`PressScript`), optionally paced to the wall clock; :meth:`VirtualSensor.frames`
-is the same as a generator of ``(timestamp_s, frame)``. Recording helpers make the inputs of the
+is the same as a generator of ``(timestamp_s, frame)``. Recording methods make the inputs of the
 calibrations: :meth:`record_reference`, :meth:`record_ball_presses` (a FOTS-style press set with
 contact circles) and :meth:`record_target_frames` (a pressed pin grid for the camera mapping).
 
