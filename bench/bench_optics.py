@@ -49,7 +49,7 @@ def run(sensor_name: str = "gelslim1", repeats: int = 20, small: bool = False) -
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.optics import simple_camera
     from tactile_deploy.optics.render import OpticsRenderer, radiance_reference
-    from tactile_deploy.sensors import load_sensor, sensor_config
+    from tactile_deploy.sensors import sensor_config
 
     cfg = sensor_config(sensor_name)
     if small:  # test settings: a 160 x 120 camera
@@ -115,26 +115,26 @@ def markdown(r: dict) -> str:
     return "\n".join([
         "## RGB frames of a virtual sensor (`tactile-deploy bench optics`)",
         "",
-        f"CPU: {machine_line()}; one thread (OpenCV and BLAS); load average "
+        (f"CPU: {machine_line()}; one thread (OpenCV and BLAS); load average "
         f"{r['load_average']:.1f} on the machine's 2 cores while measuring. Sensor `{r['sensor']}`: "
         f"{r['width_px']} x {r['height_px']} px, {r['lights']} LEDs, blur, shot and read noise, "
-        "8-bit.",
+        "8-bit."),
         "",
         "| path | ms per frame | frames/s | vs baseline |",
         "|---|---|---|---|",
-        f"| direct per-light equations, float64 (baseline) | {r['baseline_ms']:.0f} | "
-        f"{r['baseline_fps']:.1f} | 1x |",
-        f"| renderer, whole frame changed | {r['full_frame_ms']:.1f} | {r['full_frame_fps']:.0f} | "
-        f"{r['speedup_full']:.0f}x |",
-        f"| renderer, one contact (4 mm sphere, {100 * r['contact_region_fraction']:.0f} % of the "
+        (f"| direct per-light equations, float64 (baseline) | {r['baseline_ms']:.0f} | "
+        f"{r['baseline_fps']:.1f} | 1x |"),
+        (f"| renderer, whole frame changed | {r['full_frame_ms']:.1f} | {r['full_frame_fps']:.0f} | "
+        f"{r['speedup_full']:.0f}x |"),
+        (f"| renderer, one contact (4 mm sphere, {100 * r['contact_region_fraction']:.0f} % of the "
         f"frame shaded) | {r['contact_frame_ms']:.1f} | {r['contact_frame_fps']:.0f} | "
-        f"{r['baseline_ms'] / r['contact_frame_ms']:.0f}x |",
-        f"| whole virtual sensor: FEM contact + fine surface + frame | {r['sensor_ms']:.0f} | "
-        f"{r['sensor_fps']:.1f} | |",
+        f"{r['baseline_ms'] / r['contact_frame_ms']:.0f}x |"),
+        (f"| whole virtual sensor: FEM contact + fine surface + frame | {r['sensor_ms']:.0f} | "
+        f"{r['sensor_fps']:.1f} | |"),
         "",
-        f"Renderer and baseline agree to {r['max_difference_grey']:.3f} grey levels (noise-free "
+        (f"Renderer and baseline agree to {r['max_difference_grey']:.3f} grey levels (noise-free "
         "radiance). Timings are medians over repeated frames; the machine's other load adds "
-        "noise (+-20 %).",
+        "noise (+-20 %)."),
     ])
 
 

@@ -26,9 +26,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -202,7 +202,7 @@ class ShadingSamples:
             raise OpticsFitError("no samples to fit")
 
     @staticmethod
-    def concatenate(parts: Sequence["ShadingSamples"]) -> "ShadingSamples":
+    def concatenate(parts: Sequence[ShadingSamples]) -> ShadingSamples:
         names = ("uv_px", "xy_mm", "z_mm", "fx", "fy", "observed", "frame", "far", "weight")
         out = ShadingSamples(*(np.concatenate([getattr(p, n) for p in parts]) for n in names))
         if all(p.circle_mm is not None for p in parts):
@@ -474,7 +474,7 @@ def fem_sinking_scale(depths_mm=(0.6, 0.9, 1.2), ball_radius_mm: float = FOTS_BA
         res = sim.solve(ball, ContactPose(depth_mm=float(d)))
         uz = res.displacements_mm[sim.mesh.sensing_nodes, 2][near]
 
-        def resid(p):
+        def resid(p, uz=uz):
             a, s = p
             z, _, _ = sphere_press_surface(xy[near], (0.0, 0.0), a, ball_radius_mm, s)
             return z - uz
@@ -634,7 +634,7 @@ def _held_out_errors(model: OpticsModel, press: PressFrames, camera, test, sinki
                           np.zeros_like(s.fy), s.observed, s.frame, s.far, s.weight)
     pred = predict(model, s)
     pred_flat = predict(model, flat)
-    h, w = press.reference.shape[:2]
+    _h, w = press.reference.shape[:2]
     idx = (s.uv_px[:, 1] * w + s.uv_px[:, 0]).astype(int)
     ref = press.reference.reshape(-1, 3).astype(np.float64)[idx]
     ok = usable(s.observed)
@@ -681,8 +681,8 @@ def fit_fots(press: PressFrames | None = None, train: Sequence[int] = FOTS_TRAIN
 
 
 def markdown_table(report: FotsReport) -> str:
-    lines = ["| prediction of the held-out presses | RMSE whole frame R / G / B | "
-             "RMSE within 2 contact radii R / G / B |", "|---|---|---|"]
+    lines = [("| prediction of the held-out presses | RMSE whole frame R / G / B | "
+             "RMSE within 2 contact radii R / G / B |"), "|---|---|---|"]
     for name, v in report.rows.items():
         f = " / ".join(f"{x:.1f}" for x in v["frame_rmse_grey"])
         c = " / ".join(f"{x:.1f}" for x in v["contact_rmse_grey"])

@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from tactile_deploy.indenters import AnalyticSphere, ContactPose
-from tactile_deploy.optics import Light, OpticsModel, SensorNoise, Vignetting, simple_camera
+from tactile_deploy.optics import (
+    Light,
+    OpticsModel,
+    SensorNoise,
+    Vignetting,
+    simple_camera,
+)
 from tactile_deploy.sensors.config import EffectSpec, VirtualSensorConfig
 from tactile_deploy.sensors.effects import (
     UnknownEffectError,
@@ -152,7 +158,10 @@ def test_zero_offset_shifts_the_contact_depth_exactly(pad_sim, nominal):
 
 
 def test_lens_distortion_moves_points_with_the_cube_of_the_radius(pad_sim, nominal):
-    from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels, undistort_pixels
+    from tactile_deploy.imaging.camera_mapping import (
+        sensor_mm_to_pixels,
+        undistort_pixels,
+    )
 
     lens = make_sensor(pad_sim, ("lens_distortion", {"k1": -0.2}))
     cam0, cam1 = nominal.optics.camera, lens.optics.camera
@@ -294,7 +303,10 @@ def test_neo_hookean_warp_kernels_match_numpy(coarse_sim):
 
 
 def test_hyperelastic_solution_is_in_equilibrium_and_grows_faster_than_linearly(coarse_sim):
-    from tactile_deploy.sensors.effects.hyperelastic import Hyperelastic, solve_neo_hookean
+    from tactile_deploy.sensors.effects.hyperelastic import (
+        Hyperelastic,
+        solve_neo_hookean,
+    )
 
     sim = coarse_sim
     mesh = sim.mesh
@@ -302,7 +314,7 @@ def test_hyperelastic_solution_is_in_equilibrium_and_grows_faster_than_linearly(
     for depth in (0.3, 0.6):
         delta = sim.intrusion(BALL, ContactPose(x_mm=0.5, depth_mm=depth))
         lin = sim.solve_intrusion(delta)
-        res, info = solve_neo_hookean(sim, delta, 1.0, backend="numpy")
+        res, _ = solve_neo_hookean(sim, delta, 1.0, backend="numpy")
         # Equilibrium of the neo-Hookean pad: internal forces = contact forces (E = 1 scale).
         from tactile_deploy.sensors.effects.hyperelastic import _pad_model
 

@@ -4,7 +4,6 @@ validation, parameter recovery on a planted sensor, and the real GelSight ball p
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -37,8 +36,8 @@ def small_model(**kw) -> OpticsModel:
         Light(name="b", kind="directional", azimuth_deg=300.0, elevation_deg=35.0,
               colour_grey=(10, 20, 190)),
     )
-    base = dict(camera=cam, lights=lights, ambient_grey=(30.0, 25.0, 35.0),
-                vignetting=Vignetting(k2=-0.2, k4=0.05), texture=GelTexture(rms=0.03, seed=4))
+    base = {"camera": cam, "lights": lights, "ambient_grey": (30.0, 25.0, 35.0),
+                "vignetting": Vignetting(k2=-0.2, k4=0.05), "texture": GelTexture(rms=0.03, seed=4)}
     base.update(kw)
     return OpticsModel(**base)
 

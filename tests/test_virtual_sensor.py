@@ -14,7 +14,6 @@ import pytest
 from tactile_deploy.indenters import AnalyticSphere, ContactPose
 from tactile_deploy.sensors import (
     SensorConfigError,
-    VirtualSensorConfig,
     list_sensors,
     load_sensor,
     load_sensor_config,
@@ -191,7 +190,7 @@ def _blob_centres(frame, reference, blur_px=4.0, frac=0.5):
     d = frame.astype(np.float32) - reference.astype(np.float32)
     mag = cv2.GaussianBlur(np.sqrt((d * d).sum(-1)), (0, 0), blur_px)
     mask = (mag > frac * np.percentile(mag, 99)).astype(np.uint8)
-    n, _, stats, centres = cv2.connectedComponentsWithStats(mask)
+    _, _, stats, centres = cv2.connectedComponentsWithStats(mask)
     return centres[1:][stats[1:, 4] > 30]
 
 

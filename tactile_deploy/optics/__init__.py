@@ -14,7 +14,11 @@ from tactile_deploy.optics.model import (
     save_optics,
     simple_camera,
 )
-from tactile_deploy.optics.render import OpticsRenderer, grid_for_camera, radiance_reference
+from tactile_deploy.optics.render import (
+    OpticsRenderer,
+    grid_for_camera,
+    radiance_reference,
+)
 
 __all__ = [
     "GelTexture",

@@ -43,7 +43,10 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_text
-from tactile_deploy.imaging.camera_mapping import CameraMapping, camera_mapping_from_parameters
+from tactile_deploy.imaging.camera_mapping import (
+    CameraMapping,
+    camera_mapping_from_parameters,
+)
 
 #: Version of the optics model file format.
 FORMAT_VERSION = 1
@@ -90,7 +93,7 @@ class Light(BaseModel):
         "dimensionless (larger = sharper highlight).")
 
     @model_validator(mode="after")
-    def _check(self) -> "Light":
+    def _check(self) -> Light:
         if self.kind == "point" and not self.position_mm[2] < 0:
             raise ValueError(
                 f"light {self.name!r}: a point light must sit below the sensing surface "
@@ -125,7 +128,7 @@ class Vignetting(BaseModel):
     k4: float = Field(0.0, ge=-1.0, le=1.0, description="rho^4 coefficient, dimensionless.")
 
     @model_validator(mode="after")
-    def _check(self) -> "Vignetting":
+    def _check(self) -> Vignetting:
         corner = 1.0 + self.k2 + self.k4
         if corner <= 0.05:
             raise ValueError(f"vignetting k2={self.k2}, k4={self.k4} darkens the corners to "
@@ -184,7 +187,7 @@ class OpticsModel(BaseModel):
         "(None: the camera's finest mm per px on the pad).")
 
     @model_validator(mode="after")
-    def _check(self) -> "OpticsModel":
+    def _check(self) -> OpticsModel:
         if not self.camera_position_mm[2] < 0:
             raise ValueError(f"camera_position_mm must be below the sensing surface (z < 0), got "
                              f"{self.camera_position_mm}")

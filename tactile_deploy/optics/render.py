@@ -56,8 +56,8 @@ def grid_for_camera(model: OpticsModel, margin_px: float = 3.0) -> OutputGrid:
         pitch = float(min(du, dv))
     lo = xy.reshape(-1, 2).min(axis=0) - margin_px * pitch
     hi = xy.reshape(-1, 2).max(axis=0) + margin_px * pitch
-    nx = int(math.ceil((hi[0] - lo[0]) / pitch))
-    ny = int(math.ceil((hi[1] - lo[1]) / pitch))
+    nx = math.ceil((hi[0] - lo[0]) / pitch)
+    ny = math.ceil((hi[1] - lo[1]) / pitch)
     cx, cy = (lo + hi) / 2.0
     return OutputGrid(x_min_mm=cx - nx * pitch / 2, x_max_mm=cx + nx * pitch / 2,
                       y_min_mm=cy - ny * pitch / 2, y_max_mm=cy + ny * pitch / 2, nx=nx, ny=ny)
@@ -86,7 +86,7 @@ TEXTURE_EXTENT_MM = 20.0
 def _texture_lattice(seed: int, length_mm: float) -> tuple[np.ndarray, float]:
     """Unit-variance Gaussian random field on the lattice (rows along +y), and its pitch (mm)."""
     step = length_mm / 4.0
-    n = int(math.ceil(2.0 * TEXTURE_EXTENT_MM / step)) + 1
+    n = math.ceil(2.0 * TEXTURE_EXTENT_MM / step) + 1
     white = np.random.default_rng(seed).standard_normal((n, n)).astype(np.float32)
     sigma = 4.0 / math.sqrt(2.0)  # lattice steps: correlation exp(-d^2 / (2 length^2))
     field = cv2.GaussianBlur(white, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
@@ -186,7 +186,7 @@ class OpticsRenderer:
         #: Radiance of the surface at rest, (H, W, 3) float32 grey levels (before blur).
         self.rest_radiance = self.radiance(rest)
         self._rest_blurred = self._blur(self.rest_radiance)
-        self._pad = 2 + int(math.ceil(3.0 * model.blur_sigma_px))
+        self._pad = 2 + math.ceil(3.0 * model.blur_sigma_px)
         self._rest_sigma = self._noise_sigma(self._rest_blurred)
         bank_len = h * w * 3 + (1 << 16)
         nrng = np.random.default_rng([noise_seed, 0x6E6F697365])
@@ -227,9 +227,9 @@ class OpticsRenderer:
             if max(lt.specular_grey) > 0:
                 half = ldir + view
                 half /= np.linalg.norm(half, axis=-1, keepdims=True)
-                entry["spec"] = dict(hx=half[..., 0].astype(f32), hy=half[..., 1].astype(f32),
-                                     hc=(-half[..., 2]).astype(f32), k=float(lt.shininess),
-                                     w=[(spec_w * c).astype(f32) for c in lt.specular_grey])
+                entry["spec"] = {"hx": half[..., 0].astype(f32), "hy": half[..., 1].astype(f32),
+                                     "hc": (-half[..., 2]).astype(f32), "k": float(lt.shininess),
+                                     "w": [(spec_w * c).astype(f32) for c in lt.specular_grey]}
             self._lights.append(entry)
 
     @staticmethod

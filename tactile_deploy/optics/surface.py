@@ -28,7 +28,7 @@ rim (by a few um: the rim is soft, not a sharp step) and biases the free surface
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -76,7 +76,7 @@ class SurfaceBuilder:
         reach = max(abs(grid.x_min_mm), abs(grid.x_max_mm), abs(grid.y_min_mm),
                     abs(grid.y_max_mm)) + 3.0 * smooth_mm + 2.0 * coarse_pitch_mm
         half = min(reach, mesh.geometry.half_extent_mm + 2.0 * coarse_pitch_mm)
-        self.camera = DepthCamera(half, int(math.ceil(2.0 * half / coarse_pitch_mm)))
+        self.camera = DepthCamera(half, math.ceil(2.0 * half / coarse_pitch_mm))
         xs = grid.x_min_mm + (np.arange(grid.nx) + 0.5) * grid.pitch_x_mm
         ys = grid.y_max_mm - (np.arange(grid.ny) + 0.5) * grid.pitch_y_mm
         x, y = np.meshgrid(xs, ys)
@@ -110,10 +110,10 @@ class SurfaceBuilder:
         x0, x1 = -h + cols[0] * p - grow, -h + (cols[-1] + 1) * p + grow
         y1, y0 = h - rows[0] * p + grow, h - (rows[-1] + 1) * p - grow
         g = self.grid
-        j0 = max(int(math.floor((x0 - g.x_min_mm) / g.pitch_x_mm)), 0)
-        j1 = min(int(math.ceil((x1 - g.x_min_mm) / g.pitch_x_mm)) + 1, g.nx)
-        i0 = max(int(math.floor((g.y_max_mm - y1) / g.pitch_y_mm)), 0)
-        i1 = min(int(math.ceil((g.y_max_mm - y0) / g.pitch_y_mm)) + 1, g.ny)
+        j0 = max(math.floor((x0 - g.x_min_mm) / g.pitch_x_mm), 0)
+        j1 = min(math.ceil((x1 - g.x_min_mm) / g.pitch_x_mm) + 1, g.nx)
+        i0 = max(math.floor((g.y_max_mm - y1) / g.pitch_y_mm), 0)
+        i1 = min(math.ceil((g.y_max_mm - y0) / g.pitch_y_mm) + 1, g.ny)
         if i1 <= i0 or j1 <= j0:
             return None
         return (i0, i1, j0, j1)
@@ -155,10 +155,10 @@ class SurfaceBuilder:
         g = self.grid
         cx, cy = footprint_xy_mm
         r = footprint_radius_mm + 2.0 * max(g.pitch_x_mm, g.pitch_y_mm)
-        j0 = max(int(math.floor((cx - r - g.x_min_mm) / g.pitch_x_mm)), 0)
-        j1 = min(int(math.ceil((cx + r - g.x_min_mm) / g.pitch_x_mm)) + 1, g.nx)
-        i0 = max(int(math.floor((g.y_max_mm - cy - r) / g.pitch_y_mm)), 0)
-        i1 = min(int(math.ceil((g.y_max_mm - cy + r) / g.pitch_y_mm)) + 1, g.ny)
+        j0 = max(math.floor((cx - r - g.x_min_mm) / g.pitch_x_mm), 0)
+        j1 = min(math.ceil((cx + r - g.x_min_mm) / g.pitch_x_mm) + 1, g.nx)
+        i0 = max(math.floor((g.y_max_mm - cy - r) / g.pitch_y_mm), 0)
+        i1 = min(math.ceil((g.y_max_mm - cy + r) / g.pitch_y_mm) + 1, g.ny)
         if j1 <= j0 or i1 <= i0:
             return None
         pts = self.xy_mm[i0:i1, j0:j1].reshape(-1, 2)

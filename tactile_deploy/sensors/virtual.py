@@ -28,11 +28,12 @@ Frames are RGB (H, W, 3) uint8 in raw camera pixels; poses and points are in the
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -118,7 +119,7 @@ class PressScript:
 
     def __post_init__(self):
         ev = sorted(self.events, key=lambda e: e.start_s)
-        for a, b in zip(ev, ev[1:]):
+        for a, b in itertools.pairwise(ev):
             if b.start_s < a.end_s:
                 raise ValueError(f"press events overlap: one ends at {a.end_s} s, the next starts "
                                  f"at {b.start_s} s")
@@ -467,7 +468,7 @@ class VirtualSensor:
                            float(result.force_n), pose, reached, True, meta), result
 
     # ------------------------------------------------------------------- frame source
-    def connect(self, script: PressScript | None = None, live: bool = False) -> "VirtualSensor":
+    def connect(self, script: PressScript | None = None, live: bool = False) -> VirtualSensor:
         """Start streaming ``script`` (None: nothing touches the sensor) from t = 0.
 
         live : pace ``read()`` to the wall clock at the camera's fps.
@@ -506,7 +507,7 @@ class VirtualSensor:
     def disconnect(self) -> None:
         self._connected = False
 
-    def __enter__(self) -> "VirtualSensor":
+    def __enter__(self) -> VirtualSensor:
         if not self._connected:
             self.connect()
         return self
@@ -528,7 +529,7 @@ class VirtualSensor:
         """``(timestamp_s, frame)`` at the camera's fps over the script's duration."""
         self.connect(script, live)
         try:
-            n = int(math.floor(script.end_s * self.config.fps + 1e-9)) + 1
+            n = math.floor(script.end_s * self.config.fps + 1e-9) + 1
             for _ in range(n):
                 frame = self.read()
                 yield self.last_timestamp_s, frame

@@ -100,4 +100,4 @@ class Effect:
     def frame_gain(self, renderer, rng: np.random.Generator | None):
         """Per-frame multiplicative gain of the radiance: None (no change), a (3,) per-channel
         gain or an (H, W, 3) / (H, W, 1) map, dimensionless."""
-        return None
+        return None  # noqa: RET501 (the hook's documented "no change")

@@ -24,6 +24,8 @@ shrinkage); domed fingertip gels reach 1 mm.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from pydantic import Field
 
@@ -43,7 +45,7 @@ class Dome(Effect):
     kind = "mechanical"
     stage = "geometry"
     Params = DomeParams
-    realistic_range = {"height_mm": (0.0, 0.5)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"height_mm": (0.0, 0.5)}
 
     def rest_height_mm(self, xy_mm: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy_mm, np.float64)

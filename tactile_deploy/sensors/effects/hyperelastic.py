@@ -34,6 +34,8 @@ stiffening); 1 for a neo-Hookean gel.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from pydantic import Field
 
@@ -173,7 +175,7 @@ class Hyperelastic(Effect):
     kind = "mechanical"
     stage = "material"
     Params = HyperelasticParams
-    realistic_range = {"strength": (0.5, 1.5)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"strength": (0.5, 1.5)}
 
     def correct_contact(self, simulator, delta_mm, result):
         if self.params.strength == 0.0:

@@ -17,6 +17,8 @@ Realistic range: |gain| up to 0.02 per mm (+-30 % across a 15 mm view).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from pydantic import Field
 
@@ -36,7 +38,7 @@ class IlluminationGradient(Effect):
     kind = "optical"
     stage = "camera"
     Params = IlluminationGradientParams
-    realistic_range = {"gain_per_mm_x": (-0.02, 0.02), "gain_per_mm_y": (-0.02, 0.02)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"gain_per_mm_x": (-0.02, 0.02), "gain_per_mm_y": (-0.02, 0.02)}
 
     def __init__(self, params=None, **kwargs):
         super().__init__(params, **kwargs)

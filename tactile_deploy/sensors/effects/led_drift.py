@@ -16,6 +16,8 @@ Realistic range: 0-0.08 (relative, one sigma).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from pydantic import Field
 
@@ -33,7 +35,7 @@ class LedDrift(Effect):
     kind = "optical"
     stage = "camera"
     Params = LedDriftParams
-    realistic_range = {"sigma_rel": (0.0, 0.08)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"sigma_rel": (0.0, 0.08)}
 
     def frame_gain(self, renderer, rng):
         s = self.params.sigma_rel

@@ -18,6 +18,8 @@ Realistic range: k1 from -0.35 to 0.05 (Raspberry Pi wide-angle modules reach -0
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import Field
 
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
@@ -35,7 +37,7 @@ class LensDistortion(Effect):
     kind = "optical"
     stage = "optics"
     Params = LensDistortionParams
-    realistic_range = {"k1": (-0.35, 0.05), "k2": (-0.1, 0.1)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"k1": (-0.35, 0.05), "k2": (-0.1, 0.1)}
 
     def optics(self, model):
         p = self.params

@@ -18,6 +18,8 @@ Realistic range: -0.05 to 0.05 (a 3 degree tilt of the view gives 0.1 %, a mirro
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from pydantic import Field
 
@@ -35,7 +37,7 @@ class PixelScale(Effect):
     kind = "optical"
     stage = "optics"
     Params = PixelScaleParams
-    realistic_range = {"anisotropy": (-0.05, 0.05)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"anisotropy": (-0.05, 0.05)}
 
     def optics(self, model):
         a = self.params.anisotropy

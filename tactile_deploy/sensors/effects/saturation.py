@@ -17,6 +17,8 @@ Realistic range: 1.0-1.6 (auto-exposure settling on a dark scene, or a user-set 
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import Field
 
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
@@ -33,7 +35,7 @@ class Saturation(Effect):
     kind = "optical"
     stage = "optics"
     Params = SaturationParams
-    realistic_range = {"exposure_factor": (1.0, 1.6)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"exposure_factor": (1.0, 1.6)}
 
     def optics(self, model):
         f = self.params.exposure_factor

@@ -21,6 +21,7 @@ Realistic range: 0-2 degrees (mounting tolerance of a finger on a gripper or a s
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -42,7 +43,7 @@ class Tilt(Effect):
     kind = "mechanical"
     stage = "contact"
     Params = TiltParams
-    realistic_range = {"angle_deg": (0.0, 2.0)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"angle_deg": (0.0, 2.0)}
 
     def intrusion_mm(self, delta_mm, xy_mm, pose):
         p = self.params

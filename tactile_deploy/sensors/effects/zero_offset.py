@@ -18,6 +18,8 @@ Realistic range: -0.05 to +0.05 mm (touch-off by force threshold on a 0.3 MPa ge
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import Field
 
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
@@ -34,7 +36,7 @@ class ZeroOffset(Effect):
     kind = "mechanical"
     stage = "contact"
     Params = ZeroOffsetParams
-    realistic_range = {"offset_mm": (-0.05, 0.05)}
+    realistic_range: ClassVar[dict[str, tuple[float, float]]] = {"offset_mm": (-0.05, 0.05)}
 
     def contact_pose(self, pose):
         if self.params.offset_mm == 0.0:
