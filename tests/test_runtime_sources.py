@@ -178,3 +178,20 @@ def test_factory_needs_a_plugin_for_demo_and_virtual():
         make_source(DemoSourceConfig())
     with pytest.raises(SourceError, match="virtual:NAME"):
         make_source(VirtualSourceConfig())
+
+
+def test_virtual_sensor_source(pad_sim):
+    """The virtual sensor as a frame source: frames at its frame rate with scripted presses,
+    an unknown sensor named with the shipped ones."""
+    from tactile_deploy.runtime.sources.virtual import VirtualSensorSource
+
+    src = make_source(parse_source("virtual:gelslim1").model_copy(update={"n_frames": 14}))
+    assert isinstance(src, VirtualSensorSource)
+    with src:
+        got = list(src)
+    assert len(got) == 14 and got[0].image.shape == (480, 640, 3)
+    assert np.allclose(np.diff([g.t_source_ns for g in got]), 1e9 / 30, atol=1)
+    change = [np.abs(g.image.astype(int) - got[0].image).max() for g in got]
+    assert max(change) > 40                          # a press is in the clip
+    with pytest.raises(SourceError, match="unknown virtual sensor 'nope'.*gelslim1"):
+        make_source(parse_source("virtual:nope")).connect()
