@@ -57,6 +57,10 @@ N_HELD_OUT = 16
 #: Imaging grid pitch = model pitch / this.
 PITCH_DIVISOR = 2
 N_DEMO = 60
+#: Shading fit settings (``calibration.shading.fit.ShadingFitConfig``): a coarser position grid
+#: and fewer colour bins than the defaults keep the table (and the plugin) to a few MB.
+SHADING_BINS = 32
+SHADING_NODE_SPACING_MM = 3.0
 
 
 @dataclass(frozen=True)
@@ -256,7 +260,10 @@ def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
     raw, circles, _ = ball_presses(sensor, grid, N_CALIBRATION, seed, truth)
     train = PressSet(rectify(reference), np.stack([rectify(f) for f in raw]),
                      [f"press_{i:03d}" for i in range(N_CALIBRATION)], circles)
-    fit = fit_shading(train, BALL_RADIUS_MM, grid.pitch_x_mm)
+    from calibration.shading.fit import ShadingFitConfig
+
+    fit = fit_shading(train, BALL_RADIUS_MM, grid.pitch_x_mm,
+                      ShadingFitConfig(bins=SHADING_BINS, node_spacing_mm=SHADING_NODE_SPACING_MM))
     save_shading(fit.model, folder / "shading.npz")
     with atomic_path(folder / "reference.png") as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(reference, cv2.COLOR_RGB2BGR))
