@@ -288,7 +288,8 @@ class Runner:
                 else force.pressure_kpa)
             laps.lap("publish")
         if self.writer is not None and frame.index % o.every == 0:
-            self.writer.submit(frame.index, pred.vertices_mm)
+            self.writer.submit(frame.index, pred.vertices_mm,
+                               block=getattr(self.source, "finite", False))
         if self._csv is not None:
             f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
             self._csv.write(f"{frame.index},{frame.t_wall_ns},{latency_ms:.4f},"

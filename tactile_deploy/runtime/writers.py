@@ -70,8 +70,8 @@ def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
 class MeshWriter:
     """Background writer of meshes into ``folder`` (module docstring).
 
-    queue_size : meshes waiting at most; when the disk is slower than the sensor, further meshes
-        are skipped (counted in ``skipped``) instead of growing memory.
+    queue_size : meshes waiting at most; when the disk is slower than a live sensor, further
+        meshes are skipped (counted in ``skipped``) instead of growing memory; a recording waits.
     """
 
     def __init__(self, folder: Path, topology, formats=("ply", "vtu"), max_mm: float = 1.0,
@@ -87,12 +87,23 @@ class MeshWriter:
         self._thread = threading.Thread(target=self._work, name="mesh writer", daemon=True)
         self._thread.start()
 
-    def submit(self, index: int, vertices_mm: np.ndarray) -> bool:
-        """Queue a mesh; False when it was skipped (queue full, or writing has failed)."""
+    def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False) -> bool:
+        """Queue a mesh; False when it was skipped (writing has failed, or the queue is full and
+        ``block`` is False). Recordings block (every requested mesh is written); live sources
+        do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
             return False
+        item = (int(index), np.array(vertices_mm, np.float32))
+        if block:
+            while self._thread.is_alive() and self.error is None:
+                try:
+                    self._q.put(item, timeout=0.5)
+                    return True
+                except queue.Full:
+                    continue
+            return False
         try:
-            self._q.put_nowait((int(index), np.array(vertices_mm, np.float32)))
+            self._q.put_nowait(item)
             return True
         except queue.Full:
             self.skipped += 1
