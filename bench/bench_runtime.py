@@ -128,6 +128,45 @@ def torch_reference(model_path, bundle: Path | None = None):
     return run, f"{bundle.relative_to(ROOT) if bundle.is_relative_to(ROOT) else bundle} ({variant.removesuffix('-int8')}, fp32)"
 
 
+def force_check(plugin, predictor, estimator, n: int = 12, seed: int = 7) -> dict:
+    """Total normal force from the predicted mesh of new virtual-sensor frames (balls and a
+    punch at random places and depths) against the force of the sensor's FEM; also the force
+    from the sensor's own FEM mesh (the inverse's exactness). Needs the virtual sensor of the
+    plugin's name."""
+    import numpy as np
+
+    try:
+        from tactile_deploy.indenters import ContactPose
+        from tactile_deploy.sensors import load_sensor
+        from tactile_deploy.sensors.catalog import UnknownSensorError
+    except ImportError as e:
+        return {"skipped": f"virtual sensors not importable ({e})"}
+    try:
+        sensor = load_sensor(plugin.name)
+    except UnknownSensorError:
+        return {"skipped": f"no virtual sensor named {plugin.name!r}"}
+    g = plugin.manifest.camera.grid
+    rng = np.random.default_rng(seed)
+    rows = []
+    for i in range(n):
+        ind = ("sphere_r4", "sphere_r6", "flat_punch")[i % 3]
+        pose = ContactPose(x_mm=float(rng.uniform(g.x_min_mm + 5, g.x_max_mm - 5)),
+                           y_mm=float(rng.uniform(g.y_min_mm + 5, g.y_max_mm - 5)),
+                           depth_mm=float(rng.uniform(0.3, 0.9)))
+        out = sensor.press(ind, pose, np.random.default_rng([seed, i]))
+        pred = predictor.predict_frame(out.frame)
+        f_pred = estimator.estimate(pred.vertices_mm, pressure=False).total_normal_force_n
+        f_mesh = estimator.estimate(out.vertices_mm.astype(np.float64), pressure=False).total_normal_force_n
+        rows.append((out.force_n, f_pred, f_mesh))
+    a = np.array(rows)
+    rel_pred = np.abs(a[:, 1] - a[:, 0]) / a[:, 0]
+    rel_mesh = np.abs(a[:, 2] - a[:, 0]) / a[:, 0]
+    return {"n": n, "force_range_n": [float(a[:, 0].min()), float(a[:, 0].max())],
+            "predicted_rel_error_median": float(np.median(rel_pred)),
+            "predicted_rel_error_max": float(rel_pred.max()),
+            "fem_mesh_rel_error_max": float(rel_mesh.max())}
+
+
 def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | None = None) -> dict:
     import cv2
     import numpy as np
@@ -199,6 +238,9 @@ def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | 
     full = time_calls(lambda v: estimator.estimate(v), verts)
     res["forces"] = {"total_p50_ms": pct(total_only, 50), "pressure_p50_ms": pct(full, 50)}
 
+    # -- forces from predicted meshes vs the virtual sensor's FEM forces
+    res["force_check"] = force_check(plugin, predictor, estimator)
+
     # -- memory over a long run (the real loop, no file output)
     src = ArrayPlayback(clip, np.arange(len(clip)) * 33_333_333, "demo clip (looped)", loop=True)
     warm = Runner(predictor, src, RunOptions(max_frames=min(1000, memory_frames), forces=False),
@@ -264,6 +306,19 @@ def markdown(r: dict) -> str:
     lines.append(f"| forces: total normal force only vs per-node pressure (dense 1,076 x 1,076) | "
                  f"{f['total_p50_ms']:.3f} ms | {f['pressure_p50_ms']:.3f} ms | "
                  f"{f['pressure_p50_ms'] / max(f['total_p50_ms'], 1e-9):.0f} x |")
+    fc = r.get("force_check", {})
+    if "skipped" in fc:
+        lines += ["", f"Forces from predicted meshes: not checked ({fc['skipped']})."]
+    elif fc:
+        lines += [
+            "",
+            f"Forces, {fc['n']} new virtual-sensor presses ({fc['force_range_n'][0]:.2f}-"
+            f"{fc['force_range_n'][1]:.2f} N; balls of 4 and 6 mm, a 3 mm punch): total normal "
+            f"force from the **predicted** mesh vs the sensor's FEM force: median error "
+            f"{100 * fc['predicted_rel_error_median']:.0f} %, worst "
+            f"{100 * fc['predicted_rel_error_max']:.0f} %; from the sensor's own FEM mesh (the "
+            f"inverse FEM alone): worst {100 * fc['fem_mesh_rel_error_max']:.1g} %.",
+        ]
     m = r["memory"]
     drift = m["rss_end_mb"] - m["rss_start_mb"]
     lines += [

@@ -85,7 +85,9 @@ SEEDS = {"gelslim1": 11, "gelslim2": 12}
 # ------------------------------------------------------------------------------------ geometry
 def imaging_grid(camera, divisor: int = PITCH_DIVISOR, margin_px: float = 2.0):
     """The largest axis-aligned box of whole model-grid cells whose corners the camera sees
-    (``margin_px`` inside the image), as an OutputGrid at ``model pitch / divisor``."""
+    (``margin_px`` inside the image), trimmed to sizes with prime factors 2, 3 and 5 only (the
+    depth integration's sine transforms are ~1.5 x faster), as an OutputGrid at
+    ``model pitch / divisor``."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid, sensor_mm_to_pixels
 
     g = OutputGrid()
@@ -105,9 +107,28 @@ def imaging_grid(camera, divisor: int = PITCH_DIVISOR, margin_px: float = 2.0):
         side = max(bad, key=bad.get)
         r0, r1, c0, c1 = (r0 + (side == "r0"), r1 - (side == "r1"), c0 + (side == "c0"),
                           c1 - (side == "c1"))
+    # trim to cell counts whose prime factors are 2, 3, 5 (fast sine transforms), centred
+    for lo, hi, axis in (("r0", "r1", 0), ("c0", "c1", 1)):
+        a, b = (r0, r1) if axis == 0 else (c0, c1)
+        n = b - a + 1
+        keep = max(k for k in range(1, n + 1) if _smooth(k * divisor))
+        a += (n - keep) // 2
+        b = a + keep - 1
+        if axis == 0:
+            r0, r1 = a, b
+        else:
+            c0, c1 = a, b
     return OutputGrid(x_min_mm=float(xs[c0]), x_max_mm=float(xs[c1 + 1]),
                       y_min_mm=float(ys[r1 + 1]), y_max_mm=float(ys[r0]),
                       nx=int(c1 - c0 + 1) * divisor, ny=int(r1 - r0 + 1) * divisor)
+
+
+def _smooth(n: int) -> bool:
+    """True when n has no prime factor above 5."""
+    for p in (2, 3, 5):
+        while n % p == 0:
+            n //= p
+    return n == 1
 
 
 def with_grid(camera, grid):
