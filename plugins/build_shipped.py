@@ -2,6 +2,7 @@
 
     python plugins/build_shipped.py [--only gelslim2] [--model exported/gelslim_mesh.onnx]
                                     [--overwrite]
+    python plugins/build_shipped.py --relink-model     # after the family model is re-exported
 
 The calibration wizard will make the same files from a real sensor; until then this script makes
 them from the shipped virtual sensors of the same names (``tactile_deploy.sensors``: the contact
@@ -302,7 +303,13 @@ def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
 
     # demo clip (MJPEG) and the depth error its compression adds
     move = DEMOS[name]
-    demo, _ = demo_frames(sensor, move, seed)
+    demo, demo_truth = demo_frames(sensor, move, seed)
+    demo_depth = [plain.frame_to_depth(f) for f in demo]
+    deep = int(np.argmax(demo_truth.max(axis=(1, 2))))
+    demo_err = {"rmse_um_worst": float(max(np.sqrt(np.mean((d - t) ** 2)) * 1e3
+                                           for d, t in zip(demo_depth, demo_truth))),
+                "deepest_true_mm": float(demo_truth[deep].max()),
+                "deepest_estimated_mm": float(demo_depth[deep].max())}
     write_video(folder / "demo.avi", demo, fps=sensor.config.fps, fourcc="MJPG")
     with open_clip(folder / "demo.avi") as src:
         decoded = np.stack([f.image for f in src])
@@ -341,6 +348,9 @@ def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
             "demo_clip": (f"{N_DEMO} frames, {move.indenter} pressed {move.depth_mm} mm, slid "
                           f"{move.start_mm} -> {move.end_mm} mm; MJPEG adds depth RMSE <= "
                           f"{max(codec):.1f} um per frame"),
+            "demo_depth_error": (f"frame RMSE <= {demo_err['rmse_um_worst']:.1f} um; deepest "
+                                 f"frame {demo_err['deepest_estimated_mm']:.3f} mm estimated, "
+                                 f"{demo_err['deepest_true_mm']:.3f} mm true"),
         },
     }
     files = {"model": model, "shading": folder / "shading.npz",
@@ -352,8 +362,27 @@ def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
     if not report.ok:
         raise SystemExit(f"built plugin {folder} does not validate:\n" + "\n".join(report.problems))
     return {"plugin": name, "seconds": round(time.perf_counter() - t0, 1), "held_out": held_err,
+            "demo": demo_err,
             "codec_rmse_um_worst": float(max(codec)), "imaging_grid": [grid.nx, grid.ny],
             "size_mb": round(sum(p.stat().st_size for p in folder.iterdir()) / 1e6, 2)}
+
+
+def relink_model(folder: Path, model: Path) -> dict:
+    """Point an existing plugin at a re-exported family model: check the model's contract and
+    mesh hash, then record its path and sha256 in ``plugin.json`` (nothing else changes)."""
+    import os
+
+    from tactile_deploy.atomic import write_json
+    from tactile_deploy.runtime.plugins import MANIFEST_NAME, PluginManifest, file_sha256, load_manifest
+    from tactile_deploy.runtime.predictor import check_model_contract
+
+    manifest = load_manifest(folder)
+    check_model_contract(model, manifest.family.mesh_hash, what=f"model for {manifest.name}")
+    doc = json.loads((folder / MANIFEST_NAME).read_text())
+    doc["model"] = {"path": Path(os.path.relpath(model, folder.resolve())).as_posix(),
+                    "sha256": file_sha256(model)}
+    write_json(folder / MANIFEST_NAME, PluginManifest.model_validate(doc).model_dump(mode="json"))
+    return {"plugin": manifest.name, "model": doc["model"]}
 
 
 def main(argv=None) -> int:
@@ -362,8 +391,13 @@ def main(argv=None) -> int:
     ap.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="the family ONNX model")
     ap.add_argument("--out", type=Path, default=HERE, help="folder of plugin folders")
     ap.add_argument("--overwrite", action="store_true", help="replace existing plugins")
+    ap.add_argument("--relink-model", action="store_true",
+                    help="only point existing plugins at --model (after a re-export)")
     args = ap.parse_args(argv)
     for name in ([args.only] if args.only else sorted(DEMOS)):
+        if args.relink_model:
+            print(json.dumps(relink_model(args.out / name, args.model.resolve()), indent=2))
+            continue
         info = build(name, args.out / name, args.model.resolve(), args.overwrite)
         print(json.dumps(info, indent=2))
     return 0

@@ -163,6 +163,7 @@ class Runner:
         self._csv = None
         self._csv_tmp = None
         self._last = None
+        self._peak = None
 
     # ------------------------------------------------------------------ setup / teardown
     def _open_outputs(self) -> None:
@@ -197,6 +198,8 @@ class Runner:
                 log.error("could not finish %s: %s", self.opt.out_dir / "frames.csv", e)
         if self.renderer is not None and self._last is not None:
             self._write_preview(*self._last)
+        if self.renderer is not None and self._peak is not None:
+            self._write_preview(*self._peak[1:], name="preview_peak.png")
         if self.publisher is not None:
             self.summary.published = self.publisher.seq
             self.publisher.close()
@@ -303,6 +306,9 @@ class Runner:
         now = time.monotonic()
         if self.renderer is not None:
             self._last = (frame.index, pred, force)
+            deepest = float(pred.depth_mm.max())
+            if self._peak is None or deepest > self._peak[0]:
+                self._peak = (deepest, frame.index, pred, force)
             if now - self._last_preview >= o.preview_every_s:
                 self._write_preview(frame.index, pred, force)
                 self._last_preview = now
@@ -335,7 +341,7 @@ class Runner:
             log.warning("frame %d: back inside the training range (OOD score %.3g)", index,
                         pred.ood_score)
 
-    def _write_preview(self, index, pred, force) -> None:
+    def _write_preview(self, index, pred, force, name: str = "preview.png") -> None:
         from tactile_deploy.runtime.preview import compose_preview, write_png
 
         if self.opt.preview_dir is None:
@@ -353,7 +359,7 @@ class Runner:
         ]
         img = compose_preview(pred.depth_mm, mesh_rgb, lines, self.opt.colour_max_mm)
         try:
-            write_png(self.opt.preview_dir / "preview.png", img)
+            write_png(self.opt.preview_dir / name, img)
             self.summary.previews_written += 1
         except OSError as e:
             log.error("could not write the preview into %s: %s", self.opt.preview_dir, e)
