@@ -15,6 +15,8 @@ vertices, displacement [N, 5380, 3] mm and ood_score [N]) this measures, in one 
 * accuracy on the run's held-out contacts (never seen in training): vertex RMSE (mm, the paper's
   metric), relative displacement error, largest node error, and the largest difference from the
   torch model the variant comes from (mm);
+* with ``--ood-data`` (depth maps of novel indenters): the AUROC of ``ood_score`` separating the
+  held-out maps from those (1 = perfect, 0.5 = chance);
 * the file size.
 
 ``--small`` builds an untrained model of the default architecture (random weights, held-out maps
@@ -60,6 +62,16 @@ def _small_model():
     return model, {"metrics": {}}, depth, disp
 
 
+def auroc(inside, outside) -> float:
+    """Area under the ROC curve of a score meant to be larger ``outside`` (Mann-Whitney U)."""
+    import numpy as np
+    from scipy.stats import rankdata
+
+    ranks = rankdata(np.concatenate([inside, outside]))
+    n_in, n_out = len(inside), len(outside)
+    return float((ranks[n_in:].sum() - n_out * (n_out + 1) / 2) / (n_in * n_out))
+
+
 def _relative(err, true):
     """||err|| / ||true||, or None when there is no true displacement (--small)."""
     import numpy as np
@@ -78,6 +90,8 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default=str(ROOT / "out" / "predictor" / "cpu_small"))
     ap.add_argument("--rounds", type=int, default=300)
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--ood-data", help="npz with depth_mm of out-of-distribution maps (novel indenters): adds the "
+                    "AUROC of each variant's ood_score, held-out maps against these")
     ap.add_argument("--json", help="also write the results to this JSON file")
     ap.add_argument("--small", action="store_true", help="untrained model, 2 variants, few rounds")
     args = ap.parse_args(argv)
@@ -87,7 +101,7 @@ def main(argv=None) -> int:
     rounds = args.rounds
     if args.small:
         model, bundle, depth, true = _small_model()
-        variants, rounds = ["lean", "lean-int8"], min(rounds, 20)
+        variants, rounds = ["lean", "lean-int8-fastood"], min(rounds, 20)
     else:
         from training.train import load_bundle
 
@@ -101,11 +115,16 @@ def main(argv=None) -> int:
         ap.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_predictor_"))
-    calib = depth[: min(64, len(depth))]
+    if args.small:
+        calib = depth
+    else:  # the training maps the shipped export calibrates on, never the held-out ones
+        from training.export import _calibration_maps
+
+        calib = _calibration_maps(Path(args.run), depth)
     sessions, sizes, export_s = {}, {}, {}
     for v in variants:
         t0 = time.perf_counter()
-        path = export_variant(model, v, tmp / f"{v}.onnx", calib if v.endswith("-int8") else None)
+        path = export_variant(model, v, tmp / f"{v}.onnx", calib if "-int8" in v else None)
         export_s[v] = time.perf_counter() - t0
         sizes[v] = sum(p.stat().st_size for p in tmp.glob(f"{v}.onnx*")) / 2**20
         sessions[v] = make_session(path, threads=1)
@@ -121,9 +140,13 @@ def main(argv=None) -> int:
     # -- accuracy -------------------------------------------------------------------------------
     k = len(depth)
     refs = {fam: torch_reference(model, fam, depth) for fam in ("coma", "lean")}
+    ood_maps = None
+    if args.ood_data:
+        ood_maps = np.load(args.ood_data)["depth_mm"][:, None].astype(np.float32)
     acc = {}
     for v in variants:
         _, disp, ood = run_session(sessions[v], depth)
+        ood_auc = auroc(ood, run_session(sessions[v], ood_maps)[2]) if ood_maps is not None else None
         ref = refs["lean" if v.startswith("lean") else "coma"][0]
         err = (disp - true).astype(np.float64)
         acc[v] = {
@@ -131,6 +154,7 @@ def main(argv=None) -> int:
             "relative_error": _relative(err, true),
             "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
             "max_diff_vs_torch_mm": float(np.abs(disp - ref).max()),
+            "ood_auroc": ood_auc,
         }
     for fam in ("coma", "lean"):
         err = (refs[fam][0] - true).astype(np.float64)
@@ -139,6 +163,7 @@ def main(argv=None) -> int:
             "relative_error": _relative(err, true),
             "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
             "max_diff_vs_torch_mm": 0.0,
+            "ood_auroc": None,
         }
 
     # -- speed: interleaved rounds --------------------------------------------------------------
@@ -180,7 +205,7 @@ def main(argv=None) -> int:
         rows.append({
             "variant": n,
             "decoder": "lean grid" if "lean" in n else "COMA",
-            "precision": "int8" if n.endswith("int8") else "fp32",
+            "precision": "int8" if "-int8" in n else "fp32",
             "p50_ms": p(n, 50), "p95_ms": p(n, 95), "per_mesh_batch8_ms": p(n, 50, t8),
             "vs_torch_eager": p(n, 50) / base_torch,
             "vs_naive": p(n, 50) / base_naive if base_naive else None,
@@ -194,8 +219,8 @@ def main(argv=None) -> int:
         f"{rounds} interleaved rounds, {k} held-out maps; target p50 <= {TARGET_P50_MS} ms.",
         "",
         "| variant | decoder | precision | p50 ms (batch 1) | p95 ms | ms/mesh (batch 8) | vs torch eager | vs naive "
-        "| vertex RMSE mm | rel. error | max error mm | max diff vs torch mm | file MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| vertex RMSE mm | rel. error | max error mm | max diff vs torch mm | OOD AUROC | file MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
@@ -205,7 +230,9 @@ def main(argv=None) -> int:
             + f" | {r['vertex_rmse_mm']:.4f} | "
             + (f"{r['relative_error']:.3f}" if r["relative_error"] is not None else "-")
             + f" | {r['max_error_mm']:.3f} "
-            f"| {r['max_diff_vs_torch_mm']:.1e} | " + (f"{r['file_mb']:.1f}" if r["file_mb"] else "-") + " |"
+            f"| {r['max_diff_vs_torch_mm']:.1e} | "
+            + (f"{r['ood_auroc']:.3f}" if r["ood_auroc"] is not None else "-")
+            + " | " + (f"{r['file_mb']:.1f}" if r["file_mb"] else "-") + " |"
         )
     print("\n".join(lines))
     if args.json:

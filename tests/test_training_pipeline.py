@@ -27,6 +27,7 @@ def test_train_export_parity(tmp_path, pad):
             "mesh": {"channels": [8, 8, 8, 16], "cheb_k": [3, 3, 3, 3], "latent": 32},
             "projection": {"hidden": [64, 128, 64]},
             "lean_decoder": {"channels": [16, 16, 8, 8]},
+            "ood_decoder": {"channels": [8, 8, 8, 8, 4]},
         },
         "data": {
             "synthetic": {
@@ -36,13 +37,13 @@ def test_train_export_parity(tmp_path, pad):
             },
             "cache_file": str(tmp_path / "data.npz"),
         },
-        "image_vae": stage, "mesh_vae": stage, "lean_decoder": stage, "projection": stage,
+        "image_vae": stage, "mesh_vae": stage, "lean_decoder": stage, "ood_decoder": stage, "projection": stage,
     })
     lines = []
     metrics = train(cfg, log=lines.append)
     run = tmp_path / "run"
     history = json.loads((run / "history.json").read_text())
-    for name in ("image_vae", "mesh_vae", "lean_decoder", "projection"):
+    for name in ("image_vae", "mesh_vae", "lean_decoder", "ood_decoder", "projection"):
         losses = [h["train_loss"] for h in history[name]]
         assert len(losses) == 3
         assert losses[-1] < losses[0], (name, losses)
@@ -53,10 +54,10 @@ def test_train_export_parity(tmp_path, pad):
     # a second start finds every stage complete and only re-evaluates
     lines.clear()
     train(cfg, log=lines.append)
-    assert sum("skipped" in line for line in lines) == 4
+    assert sum("skipped" in line for line in lines) == 5
 
     out = tmp_path / "export" / "gelslim_mesh.onnx"
-    card = export_run(run, out, variant="lean", optimize=False)
+    card = export_run(run, out, variant="lean-fastood", optimize=False)
     assert card["parity"]["max_abs_diff_mm"] <= 1e-4
     assert card["parity"]["ood_max_abs_diff_mm"] <= 1e-4
     meta = check_model_contract(out, pad.content_hash, pad.n_nodes)

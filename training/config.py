@@ -73,11 +73,20 @@ class GridDecoderConfig(_Strict):
     half_extent_mm: float = Field(17.5, gt=0, description="The grid spans +-this in x and y, mm.")
 
 
+class LeanImageDecoderConfig(_Strict):
+    """Small decoder of the image latent whose reconstruction error is the deployed ood_score."""
+
+    channels: tuple[int, ...] = Field(
+        (32, 32, 16, 16, 8), description="Channels at 4x4, 8x8, ..., resolution/2 (one per up-sampling step)."
+    )
+
+
 class ModelConfig(_Strict):
     image: ImageVAEConfig = Field(default_factory=ImageVAEConfig)
     mesh: MeshVAEConfig = Field(default_factory=MeshVAEConfig)
     projection: ProjectionConfig = Field(default_factory=ProjectionConfig)
     lean_decoder: GridDecoderConfig = Field(default_factory=GridDecoderConfig)
+    ood_decoder: LeanImageDecoderConfig = Field(default_factory=LeanImageDecoderConfig)
 
 
 class SyntheticData(_Strict):
@@ -139,6 +148,10 @@ class TrainConfig(_Strict):
     lean_decoder: StageConfig | None = Field(
         default_factory=lambda: StageConfig(epochs=20),
         description="Train the lean decoder on the frozen mesh encoder's latents (None: skip).",
+    )
+    ood_decoder: StageConfig | None = Field(
+        default_factory=lambda: StageConfig(epochs=20),
+        description="Train the lean image decoder (deployed ood_score) on the frozen image encoder (None: skip).",
     )
 
     @staticmethod

@@ -18,9 +18,13 @@ Variants (``VARIANTS``):
 * ``naive``: the training modules as they are (COMA decoder, Chebyshev recursions as Gather tables);
 * ``fused``: the same function restructured (:mod:`training.fused`), exact to float rounding;
 * ``lean``: image encoder + projection + the lean grid decoder (:mod:`training.networks.grid_decoder`);
-* ``*-int8``: a variant with the image encoder, projection and decoder convolutions / GEMMs
-  quantised to int8 (static QDQ, calibrated on training depth maps; onnxruntime fuses them into
-  integer kernels). int8 graphs are checked against their fp32 graph by accuracy, not bit parity.
+* ``*-fastood``: ``ood_score`` from the lean image decoder (:class:`LeanImageDecoder`, trained on
+  the frozen image encoder) instead of the symmetric VAE decoder, which is half of the lean graph's
+  time; the metadata's ``ood_threshold`` is then that decoder's held-out p99;
+* ``*-int8``: a variant with the image encoder, the projection and the image decoder (the
+  ``ood_score`` branch) in int8 (static QDQ, calibrated on training depth maps; onnxruntime fuses
+  them into integer kernels); the mesh decoder stays fp32. int8 graphs are checked against their
+  fp32 graph by accuracy, not bit parity.
 """
 
 from __future__ import annotations
@@ -37,9 +41,9 @@ from torch import nn
 
 from training.networks.predictor import Predictor
 
-VARIANTS = ("naive", "fused", "lean", "fused-int8", "lean-int8")
+VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood")
 #: The variant written to the shipped file (best accuracy/speed pair, see bench/bench_predictor.py).
-SHIPPED_VARIANT = "lean-int8"
+SHIPPED_VARIANT = "lean-int8-fastood"
 OPSET = 18
 OUTPUTS = ["vertices", "displacement", "ood_score"]
 SENSOR_FAMILY = "gelslim"
@@ -55,6 +59,51 @@ DEPTH_DOC = (
 
 
 # ----------------------------------------------------------------------------------------- graphs
+class PixelShuffleUp(nn.Module):
+    """A stride-2, kernel-2 transposed convolution written as a 1 x 1 convolution to 4 C_out
+    channels and a pixel shuffle (ONNX DepthToSpace, CRD). Same numbers; the 1 x 1 convolution
+    quantises to an integer kernel, while onnxruntime de-quantises ConvTranspose weights per call.
+
+    y[o, 2i + a, 2j + b] = sum_c x[c, i, j] W[c, o, a, b] + bias[o]
+    """
+
+    def __init__(self, deconv: nn.ConvTranspose2d):
+        super().__init__()
+        c_in, c_out = deconv.in_channels, deconv.out_channels
+        self.conv = nn.Conv2d(c_in, 4 * c_out, 1)
+        with torch.no_grad():
+            # conv output channel o * 4 + a * 2 + b (pixel_shuffle's order)
+            self.conv.weight.copy_(deconv.weight.permute(1, 2, 3, 0).reshape(4 * c_out, c_in, 1, 1))
+            bias = deconv.bias if deconv.bias is not None else torch.zeros(c_out)
+            self.conv.bias.copy_(bias.repeat_interleave(4))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.pixel_shuffle(self.conv(x), 2)
+
+
+#: Transposed convolutions with at least this many weights become :class:`PixelShuffleUp`: there
+#: int8 weights save memory traffic, while on wide, few-channel outputs DepthToSpace costs more
+#: than an fp32 ConvTranspose.
+PIXEL_SHUFFLE_MIN_WEIGHTS = 65536
+
+
+def rewrite_transposed_convs(module: nn.Module, min_weights: int = PIXEL_SHUFFLE_MIN_WEIGHTS) -> nn.Module:
+    """Replace kernel-2, stride-2 ConvTranspose2d layers (no padding) with at least ``min_weights``
+    weights in ``module`` by :class:`PixelShuffleUp` (in place); returns ``module``."""
+    for name, child in module.named_children():
+        if (
+            isinstance(child, nn.ConvTranspose2d)
+            and child.kernel_size == (2, 2) and child.stride == (2, 2)
+            and child.padding == (0, 0) and child.output_padding == (0, 0)
+            and child.groups == 1 and child.dilation == (1, 1)
+            and child.weight.numel() >= min_weights
+        ):
+            setattr(module, name, PixelShuffleUp(child))
+        else:
+            rewrite_transposed_convs(child, min_weights)
+    return module
+
+
 class DeployGraph(nn.Module):
     """depth (N, 1, R, R) mm -> (vertices (N, n, 3) mm, displacement (N, n, 3) mm, ood_score (N,) mm).
 
@@ -62,10 +111,10 @@ class DeployGraph(nn.Module):
     (conv(x / s) = (W / s) * x + b) and depth_scale into the image decoder's last layer.
     """
 
-    def __init__(self, model: Predictor, decoder: nn.Module, out_scale: torch.Tensor | None):
+    def __init__(self, model: Predictor, decoder: nn.Module, out_scale: torch.Tensor | None, ood: str = "vae"):
         super().__init__()
         enc = copy.deepcopy(model.image_vae.encoder)
-        img_dec = copy.deepcopy(model.image_vae.decoder)
+        img_dec = copy.deepcopy(model.ood_decoder if ood == "lean" else model.image_vae.decoder)
         s = model.norm.depth_scale_mm.detach()
         with torch.no_grad():
             enc.convs[0].weight.div_(s)
@@ -73,9 +122,9 @@ class DeployGraph(nn.Module):
             last.weight.mul_(s)
             last.bias.mul_(s)
         self.convs, self.fc, self.mu = enc.convs, enc.fc, enc.mu
-        self.image_decoder = img_dec
+        self.image_decoder = rewrite_transposed_convs(img_dec)
         self.projection = copy.deepcopy(model.projection)
-        self.decoder = decoder
+        self.decoder = rewrite_transposed_convs(decoder)
         self.register_buffer("rest", model.norm.rest_vertices_mm.clone())
         if out_scale is None:
             self.out_scale = None
@@ -92,19 +141,33 @@ class DeployGraph(nn.Module):
         return self.rest + d, d, ood
 
 
+def variant_parts(variant: str) -> tuple[str, bool, str]:
+    """(base "naive" | "fused" | "lean", int8?, ood decoder "vae" | "lean") of a variant name."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
+    base = variant.split("-")[0]
+    return base, "-int8" in variant, "lean" if variant.endswith("-fastood") else "vae"
+
+
+def fp32_twin(variant: str) -> str:
+    """The variant with the same graph in fp32 (itself for fp32 variants)."""
+    base, _, ood = variant_parts(variant)
+    return base + ("-fastood" if ood == "lean" else "")
+
+
 def deploy_module(model: Predictor, variant: str) -> DeployGraph:
     """The fp32 torch module exported for ``variant`` (int8 variants start from their fp32 base)."""
-    base = variant.removesuffix("-int8")
+    base, _, ood = variant_parts(variant)
     model = model.eval()
     scale_mask = (model.norm.displacement_scale_mm * model.norm.free_mask).detach().clone()
     if base == "naive":
         dec = copy.deepcopy(model.mesh_vae.decoder)
         dec.graphs.set_use_tables(True)
-        return DeployGraph(model, dec, scale_mask).eval()
+        return DeployGraph(model, dec, scale_mask, ood).eval()
     if base == "fused":
         from training.fused import FusedComaDecoder
 
-        return DeployGraph(model, FusedComaDecoder(model.mesh_vae.decoder), scale_mask).eval()
+        return DeployGraph(model, FusedComaDecoder(model.mesh_vae.decoder), scale_mask, ood).eval()
     if base == "lean":
         dec = copy.deepcopy(model.lean_decoder)
         last = dec.net[-1]
@@ -114,7 +177,7 @@ def deploy_module(model: Predictor, variant: str) -> DeployGraph:
         with torch.no_grad():
             last.weight.mul_(s[None, :, None, None])
             last.bias.mul_(s)
-        return DeployGraph(model, dec, None).eval()
+        return DeployGraph(model, dec, None, ood).eval()
     raise ValueError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
 
 
@@ -131,19 +194,47 @@ def _onnx_export(
     prog.save(str(path))
 
 
+#: Modules (paths inside :class:`DeployGraph`) whose Conv / Gemm / MatMul become int8. Not the
+#: first convolution (one input channel: the int8 kernel is slower than fp32 there) and not the
+#: mesh decoders (small, and where quantisation error reaches the vertices directly: 3x the RMS
+#: deviation of all other layers together on the CPU run).
+INT8_MODULES = ("convs.", "fc.", "projection.", "image_decoder.")
+INT8_EXCLUDE = ("convs.0",)
+
+
+def node_module_path(node) -> str:
+    """Module path (e.g. ``projection.net.2``) the dynamo exporter recorded for an ONNX node."""
+    meta = {p.key: p.value for p in node.metadata_props}
+    parts = meta.get("namespace", "").split("/")
+    return parts[-2].split(":")[0] if len(parts) >= 2 else ""
+
+
+def int8_nodes(model) -> list[str]:
+    """Names of the nodes :func:`quantise` turns into int8 (see INT8_MODULES)."""
+    inits = {i.name for i in model.graph.initializer}
+    out = []
+    for n in model.graph.node:
+        weighted = n.op_type in ("Conv", "Gemm") or (n.op_type == "MatMul" and n.input[1] in inits)
+        path = node_module_path(n)
+        if weighted and path.startswith(INT8_MODULES) and not any(
+            path == e or path.startswith(e + ".") for e in INT8_EXCLUDE
+        ):
+            out.append(n.name)
+    return out
+
+
 def quantise(fp32_path: Path, out_path: Path, calibration: np.ndarray, input_name: str = "depth") -> None:
-    """Static int8 QDQ quantisation of the Conv/Gemm/MatMul/ConvTranspose nodes that carry
-    weights (u8 activations, s8 per-channel weights, MinMax calibration on ``calibration``
-    (K, 1, R, R) mm). Gathers, reshapes and the Chebyshev tables stay float."""
+    """Static int8 QDQ quantisation of :func:`int8_nodes` (u8 activations, s8 per-channel weights,
+    MinMax calibration on ``calibration`` (K, 1, R, R) mm); onnxruntime fuses the QDQ pairs into
+    integer kernels. Everything else stays fp32."""
+    import logging
+
     import onnx
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
-    model = onnx.load(str(fp32_path))
-    inits = {i.name for i in model.graph.initializer}
-    nodes = [
-        n.name for n in model.graph.node
-        if n.op_type in ("Conv", "Gemm", "ConvTranspose") or (n.op_type == "MatMul" and n.input[1] in inits)
-    ]
+    nodes = int8_nodes(onnx.load(str(fp32_path)))
+    if not nodes:
+        raise RuntimeError(f"{fp32_path}: no node to quantise (module paths missing from the export?)")
 
     class Reader(CalibrationDataReader):
         def __init__(self):
@@ -152,15 +243,13 @@ def quantise(fp32_path: Path, out_path: Path, calibration: np.ndarray, input_nam
         def get_next(self):
             return next(self.it, None)
 
-    import logging
-
     level = logging.getLogger().level
     logging.getLogger().setLevel(logging.ERROR)
     try:
         quantize_static(
             str(fp32_path), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-            nodes_to_quantize=nodes, extra_options={"ActivationSymmetric": False},
+            nodes_to_quantize=nodes,
         )
     finally:
         logging.getLogger().setLevel(level)
@@ -209,7 +298,7 @@ def export_variant(
     path = Path(path)
     example = torch.zeros(2, 1, model.cfg.image.resolution, model.cfg.image.resolution)
     module = deploy_module(model, variant)
-    if variant.endswith("-int8"):
+    if variant_parts(variant)[1]:
         if calibration is None:
             raise ValueError(f"variant {variant!r} needs calibration depth maps")
         fp32 = path.with_name(path.stem + ".fp32.tmp.onnx")
@@ -226,17 +315,19 @@ def export_variant(
 
 @torch.no_grad()
 def torch_reference(model: Predictor, variant: str, depth_mm: np.ndarray, batch: int = 32):
-    """(displacement (K, n, 3) mm, ood_score (K,) mm) of the eager fp32 torch model of ``variant``."""
+    """(displacement (K, n, 3) mm, ood_score (K,) mm) of the eager fp32 torch model of ``variant``
+    (``variant`` may also be a decoder family, "coma" or "lean", with the VAE's ood_score)."""
     model.deploy_decoder = "lean" if variant.startswith("lean") else "coma"
-    disp, ood = [], []
+    ood = variant_parts(variant)[2] if variant in VARIANTS else "vae"
+    disp, oods = [], []
     try:
         for i in range(0, len(depth_mm), batch):
             x = torch.as_tensor(depth_mm[i : i + batch])
             disp.append(model(x)[1].numpy())
-            ood.append(model.image_reconstruction_rmse(x).numpy())
+            oods.append(model.image_reconstruction_rmse(x, ood).numpy())
     finally:
         model.deploy_decoder = "coma"
-    return np.concatenate(disp), np.concatenate(ood)
+    return np.concatenate(disp), np.concatenate(oods)
 
 
 def export_run(
@@ -250,16 +341,15 @@ def export_run(
 
     run_dir, out = Path(run_dir), Path(out)
     variant = variant or SHIPPED_VARIANT
-    if variant not in VARIANTS:
-        raise ValueError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
+    _, is_int8, ood = variant_parts(variant)
     model, bundle = load_bundle(run_dir / "model.pt")
     held = np.load(run_dir / "heldout.npz")
     depth = held["depth_mm"][:, None].astype(np.float32)
     true = held["displacement_mm"]
     t0 = time.perf_counter()
-    calibration = _calibration_maps(run_dir, depth) if variant.endswith("-int8") else None
+    calibration = _calibration_maps(run_dir, depth) if is_int8 else None
     export_variant(model, variant, out, calibration, optimize)
-    fp32_variant = variant.removesuffix("-int8")
+    fp32_variant = fp32_twin(variant)
     ref_path = out.with_name(out.stem + "_fp32.onnx") if variant != fp32_variant else out
     if ref_path != out:
         export_variant(model, fp32_variant, ref_path, optimize=optimize)
@@ -287,7 +377,7 @@ def export_run(
         "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
         "ood_score_p99_mm": float(np.quantile(final_ood, 0.99)),
     }
-    ood_threshold = float(bundle["metrics"]["ood"]["recon_rmse_mm_p99"])
+    ood_threshold = float(bundle["metrics"]["ood_lean" if ood == "lean" else "ood"]["recon_rmse_mm_p99"])
     card = build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, time.perf_counter() - t0)
     props = card_metadata(card)
     for p in {out, ref_path}:
@@ -326,7 +416,7 @@ def card_metadata(card: dict) -> dict[str, str]:
         "input.depth": DEPTH_DOC,
         "output.vertices": "vertices [N, 5380, 3] float32, mm, deformed positions = rest + displacement",
         "output.displacement": "displacement [N, 5380, 3] float32, mm, from the rest pad mesh",
-        "output.ood_score": "ood_score [N] float32, mm: RMS error of the image VAE's reconstruction of the depth map",
+        "output.ood_score": "ood_score [N] float32, mm: RMS error of the depth map's reconstruction from the image VAE latent",
         "ood_threshold": repr(card["ood_threshold_mm"]),
         "training_commit": card["training"]["commit"],
         "training_dirty": str(card["training"]["dirty"]).lower(),

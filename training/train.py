@@ -6,6 +6,7 @@ Data flow of :func:`train`::
       -> stage "image_vae"    (MSE + lambda_I KL on normalised depth)
       -> stage "mesh_vae"     (MSE + lambda_M KL on normalised displacement)
       -> stage "lean_decoder" (optional: the deployment decoder, MSE from z ~ q(z | mesh), VAEs frozen)
+      -> stage "ood_decoder"  (optional: small decoder of the frozen image latent, for ood_score)
       -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen)
       -> held-out evaluation of both decoders, OOD calibration
       -> run_dir/model.pt, heldout.npz, metrics.json, history.json, learning_curves.png
@@ -35,7 +36,7 @@ from training.networks.image_vae import vae_loss
 from training.networks.predictor import Predictor
 
 BUNDLE_FORMAT = 1
-STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection")
+STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder")
 
 
 def git_commit(repo: Path | None = None) -> dict:
@@ -166,6 +167,8 @@ def _freeze(module: torch.nn.Module) -> None:
 def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     """Run all stages of ``cfg``; returns the metrics (also written to ``run_dir/metrics.json``)."""
     dist, device = distributed.init(cfg.device)
+    if not dist.is_main:
+        log = lambda message: None  # noqa: E731 - rank 0 reports for all
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir)
@@ -200,7 +203,7 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         x = pick(tr, train).depth[idx]
         recon, mu, logvar = m(x, sample=train)
         loss, metrics = vae_loss(x, recon, mu, logvar, s1.kl_weight)
-        metrics["rmse_mm"] = float(torch.sqrt(torch.mean((recon - x) ** 2))) * scales.depth_scale_mm
+        metrics["rmse_mm"] = float(np.sqrt(metrics["mse"])) * scales.depth_scale_mm
         return loss, metrics
 
     hist = {}
@@ -214,7 +217,7 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         x = pick(tr, train).disp[idx]
         recon, mu, logvar = m(x, sample=train)
         loss, metrics = vae_loss(x, recon * mask, mu, logvar, s2.kl_weight)
-        metrics["rmse_mm"] = float(torch.sqrt(torch.tensor(metrics["mse"]))) * scale_mm
+        metrics["rmse_mm"] = float(np.sqrt(metrics["mse"])) * scale_mm
         return loss, metrics
 
     hist["mesh_vae"] = run_stage("mesh_vae", model.mesh_vae, mesh_step, tr.n, va.n, s2, run_dir, dist, device, cfg.seed, log)
@@ -239,12 +242,32 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             if train:  # the mesh VAE decoder's training distribution: z ~ q(z | mesh)
                 z = z + torch.randn_like(z) * torch.exp(0.5 * t.z_mesh_logvar[idx])
             mse = torch.mean((m(z) * mask - t.disp[idx]) ** 2)
-            return mse, {"loss": float(mse), "mse": float(mse), "rmse_mm": float(torch.sqrt(mse)) * scale_mm}
+            return mse, {"loss": mse.item(), "mse": mse.item(), "rmse_mm": mse.sqrt().item() * scale_mm}
 
         hist["lean_decoder"] = run_stage(
             "lean_decoder", model.lean_decoder, lean_step, tr.n, va.n, s4, run_dir, dist, device, cfg.seed, log
         )
         _freeze(model.lean_decoder)
+
+    # -- stage 3b (optional): lean image decoder for the deployed ood_score ------------------
+    s5 = cfg.ood_decoder
+    if s5 is not None:
+        for t in (tr, va):
+            with torch.no_grad():
+                t.z_image_logvar = torch.cat([model.image_vae.encoder(t.depth[i])[1] for i in _batches(t.n, 256, None)])
+
+        def ood_step(m, idx, train):
+            t = pick(tr, train)
+            z = t.z_image[idx]
+            if train:
+                z = z + torch.randn_like(z) * torch.exp(0.5 * t.z_image_logvar[idx])
+            mse = torch.mean((m(z) - t.depth[idx]) ** 2)
+            return mse, {"loss": mse.item(), "mse": mse.item(), "rmse_mm": mse.sqrt().item() * scales.depth_scale_mm}
+
+        hist["ood_decoder"] = run_stage(
+            "ood_decoder", model.ood_decoder, ood_step, tr.n, va.n, s5, run_dir, dist, device, cfg.seed, log
+        )
+        _freeze(model.ood_decoder)
 
     # -- stage 4: latent projection through the frozen mesh decoder -------------------------
     s3 = cfg.projection
@@ -257,8 +280,8 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mse = torch.mean((pred - t.disp[idx]) ** 2)
         lat = torch.mean((z - t.z_mesh[idx]) ** 2)
         loss = mse + s3.latent_weight * lat
-        return loss, {"loss": float(loss), "mse": float(mse), "latent_mse": float(lat),
-                      "rmse_mm": float(torch.sqrt(mse)) * scale_mm}
+        return loss, {"loss": loss.item(), "mse": mse.item(), "latent_mse": lat.item(),
+                      "rmse_mm": mse.sqrt().item() * scale_mm}
 
     hist["projection"] = run_stage("projection", model.projection, proj_step, tr.n, va.n, s3, run_dir, dist, device, cfg.seed, log)
 
@@ -308,18 +331,19 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
 
 @torch.no_grad()
 def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: int = 64) -> dict:
-    """Held-out figures of the image-to-mesh path (mm, sensor frame) and the OOD calibration.
+    """Held-out figures (of this rank's held-out contacts in a distributed run) of the image-to-mesh path (mm, sensor frame) and the OOD calibration.
 
     vertex_rmse_mm: RMS over samples, nodes and axes of predicted - true vertex positions (the
     paper's metric); relative_error: ||pred - true|| / ||true|| of the displacements over the set;
     mesh_reconstruction_*: the same for the mesh VAE alone (true mesh -> latent mean -> decoder),
     the floor the image-to-mesh path can reach with this decoder.
-    ood: quantiles of the image VAE reconstruction RMSE (mm) on these in-distribution maps.
+    ood / ood_lean: quantiles of the reconstruction RMSE (mm) on these in-distribution maps, by
+    the image VAE's decoder / the lean image decoder (the deployed ood_score).
     """
     model.eval()
     err2 = true2 = rec_err2 = 0.0
     max_err = 0.0
-    recon = []
+    recon, recon_lean = [], []
     n = 0
     for i in range(0, len(data), batch):
         depth = torch.as_tensor(data.depth_mm[i : i + batch, None]).to(device)
@@ -333,8 +357,10 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
         true2 += float((true.double() ** 2).sum())
         max_err = max(max_err, float(e.norm(dim=-1).max()))
         recon.append(model.image_reconstruction_rmse(depth).cpu().numpy())
+        recon_lean.append(model.image_reconstruction_rmse(depth, "lean").cpu().numpy())
         n += e.numel()
     rec = np.concatenate(recon)
+    rec_lean = np.concatenate(recon_lean)
     return {
         "n_samples": len(data),
         "vertex_rmse_mm": float(np.sqrt(err2 / n)),
@@ -347,6 +373,12 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
             "recon_rmse_mm_p95": float(np.quantile(rec, 0.95)),
             "recon_rmse_mm_p99": float(np.quantile(rec, 0.99)),
             "recon_rmse_mm_max": float(rec.max()),
+        },
+        "ood_lean": {
+            "recon_rmse_mm_p50": float(np.quantile(rec_lean, 0.5)),
+            "recon_rmse_mm_p95": float(np.quantile(rec_lean, 0.95)),
+            "recon_rmse_mm_p99": float(np.quantile(rec_lean, 0.99)),
+            "recon_rmse_mm_max": float(rec_lean.max()),
         },
     }
 

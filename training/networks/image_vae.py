@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from training.config import ImageVAEConfig
+from training.config import ImageVAEConfig, LeanImageDecoderConfig
 
 _ACT = {"elu": nn.ELU, "relu": nn.ReLU}
 
@@ -78,6 +78,36 @@ class ImageDecoder(nn.Module):
         return self.deconvs(h)
 
 
+class LeanImageDecoder(nn.Module):
+    """A small decoder of the image VAE's latent, for the deployed ``ood_score``.
+
+    (B, latent) -> (B, 1, R, R) normalised depth: FC to channels[0] x 4 x 4, ReLU, stride-2
+    kernel-2 transposed convolutions with ReLU, a linear last one to 1 channel. Trained on the
+    frozen image encoder (same latent space), it reconstructs at a fraction of the symmetric
+    decoder's cost; its reconstruction error is the deployed out-of-distribution score.
+    """
+
+    def __init__(self, cfg: LeanImageDecoderConfig, latent: int, resolution: int):
+        super().__init__()
+        steps = len(cfg.channels)
+        if 4 * 2**steps != resolution:
+            raise ValueError(
+                f"{steps} up-sampling steps from 4 x 4 give {4 * 2**steps}, not resolution {resolution}"
+            )
+        self.c0 = cfg.channels[0]
+        self.fc = nn.Sequential(nn.Linear(latent, self.c0 * 16), nn.ReLU())
+        layers: list[nn.Module] = []
+        widths = list(cfg.channels) + [1]
+        for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
+            layers.append(nn.ConvTranspose2d(a, b, 2, stride=2))
+            if i < len(widths) - 2:
+                layers.append(nn.ReLU())
+        self.deconvs = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.deconvs(self.fc(z).reshape(-1, self.c0, 4, 4))
+
+
 class ImageVAE(nn.Module):
     def __init__(self, cfg: ImageVAEConfig):
         super().__init__()
@@ -105,4 +135,4 @@ def vae_loss(target, recon, mu, logvar, kl_weight: float) -> tuple[torch.Tensor,
     mse = torch.mean((recon - target) ** 2)
     kl = kl_divergence(mu, logvar)
     loss = mse + kl_weight * kl
-    return loss, {"loss": float(loss), "mse": float(mse), "kl": float(kl)}
+    return loss, {"loss": loss.item(), "mse": mse.item(), "kl": kl.item()}

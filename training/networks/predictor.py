@@ -23,7 +23,7 @@ from torch import nn
 from training.config import ModelConfig, ProjectionConfig
 from training.networks.coarsening import Hierarchy
 from training.networks.grid_decoder import GridDecoder
-from training.networks.image_vae import _ACT, ImageVAE
+from training.networks.image_vae import _ACT, ImageVAE, LeanImageDecoder
 from training.networks.mesh_vae import MeshVAE
 
 
@@ -93,6 +93,7 @@ class Predictor(nn.Module):
         self.lean_decoder = GridDecoder(cfg.lean_decoder, cfg.mesh.latent, lv.plane_xy_mm, lv.n_layers)
         #: Decoder of the deployed path: "coma" (the mesh VAE's) or "lean" (the grid decoder).
         self.deploy_decoder = "coma"
+        self.ood_decoder = LeanImageDecoder(cfg.ood_decoder, cfg.image.latent, cfg.image.resolution)
 
     # -- the deployed path, step by step -------------------------------------------------------
     def normalise_depth(self, depth_mm: torch.Tensor) -> torch.Tensor:
@@ -114,9 +115,11 @@ class Predictor(nn.Module):
         return self.norm.rest_vertices_mm + disp, disp
 
     # -- out-of-distribution score -------------------------------------------------------------
-    def image_reconstruction_rmse(self, depth_mm: torch.Tensor) -> torch.Tensor:
-        """RMS error (N,) mm of the image VAE's reconstruction from its mean latent."""
+    def image_reconstruction_rmse(self, depth_mm: torch.Tensor, decoder: str = "vae") -> torch.Tensor:
+        """RMS error (N,) mm of the reconstruction from the image VAE's mean latent, by its own
+        decoder (``"vae"``) or the lean one (``"lean"``)."""
         x = self.normalise_depth(depth_mm)
-        recon = self.image_vae.decoder(self.image_vae.encoder(x)[0])
+        dec = self.ood_decoder if decoder == "lean" else self.image_vae.decoder
+        recon = dec(self.image_vae.encoder(x)[0])
         err = (recon - x) * self.norm.depth_scale_mm
         return torch.sqrt(torch.mean(err.pow(2), dim=(1, 2, 3)))
