@@ -330,3 +330,26 @@ def test_mesh_writer_skips_for_live_sources_and_waits_for_recordings(predictor, 
         assert rec.submit(i, v, block=True)
     rec.close()
     assert rec.written == 20 and rec.skipped == 0
+
+
+def test_loop_memory_does_not_grow_with_frames(plugin, predictor):
+    """Python allocations of the loop after 300 and after 1,000 more frames (no outputs): flat
+    (fixed-size statistics; a per-frame leak of one float would add 32 kB)."""
+    import tracemalloc
+
+    frames, _, _ = load_clip(plugin.demo_clip_path())
+    src = ArrayPlayback(list(frames), np.arange(len(frames)) * 1000, "clip", loop=True)
+    sizes = {}
+
+    class Probe(Runner):
+        def step(self, frame):
+            super().step(frame)
+            if self.summary.frames in (300, 1300):
+                sizes[self.summary.frames] = tracemalloc.get_traced_memory()[0]
+
+    tracemalloc.start()
+    try:
+        Probe(predictor, src, RunOptions(max_frames=1300)).run()
+    finally:
+        tracemalloc.stop()
+    assert sizes[1300] - sizes[300] < 16_000, sizes

@@ -27,7 +27,6 @@ import json
 import logging
 import math
 import os
-import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib.metadata import entry_points
@@ -625,10 +624,6 @@ def write_plugin(folder: str | os.PathLike, manifest_fields: dict, files: dict[s
     manifest = PluginManifest.model_validate(fields)
     write_json(target, manifest.model_dump(mode="json"))
     return manifest
-
-
-def _is_name(text: str) -> bool:
-    return re.fullmatch(r"[a-z0-9][a-z0-9_\-]*", text) is not None
 
 
 def crop_camera_mapping(image_width_px: int, image_height_px: int, mm_per_px: float,

@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -159,7 +160,7 @@ class Runner:
         self._last_status = 0.0
         self._last_preview = -1e18
         self._t0 = time.monotonic()
-        self._recent: list[float] = []
+        self._recent: deque[float] = deque()      # frame times of the last 2 s (fps)
         self._csv = None
         self._csv_tmp = None
         self._last = None
@@ -313,13 +314,13 @@ class Runner:
                 self._write_preview(frame.index, pred, force)
                 self._last_preview = now
         self._recent.append(now)
+        while now - self._recent[0] > 2.0:
+            self._recent.popleft()
         if self.status is not None and now - self._last_status >= o.status_every_s:
             self._last_status = now
             self.status(self.status_line())
 
     def status_line(self) -> str:
-        now = time.monotonic()
-        self._recent = [t for t in self._recent if now - t <= 2.0]
         fps = (len(self._recent) - 1) / (self._recent[-1] - self._recent[0]) if len(
             self._recent) > 1 and self._recent[-1] > self._recent[0] else 0.0
         s = self.summary
