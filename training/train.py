@@ -3,11 +3,12 @@
 Data flow of :func:`train`::
 
     config -> data of this rank -> split by contact (80/20) -> scales from the training part
-      -> stage "image_vae"    (MSE + lambda_I KL on normalised depth)
+      -> stage "image_vae"    (MSE + lambda_I KL on normalised depth; with ``augmentation``: augmented in, clean out)
       -> stage "mesh_vae"     (MSE + lambda_M KL on normalised displacement)
       -> stage "lean_decoder" (optional: the deployment decoder, MSE from z ~ q(z | mesh), VAEs frozen)
       -> stage "ood_decoder"  (optional: small decoder of the frozen image latent, for ood_score)
-      -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen)
+      -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen;
+                               with ``augmentation``: latents of augmented maps)
       -> held-out evaluation of both decoders, OOD calibration
       -> run_dir/model.pt, heldout.npz, metrics.json, history.json, learning_curves.png
 
@@ -196,12 +197,14 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     def pick(t: _Tensors, train: bool):
         return t if train else va
 
+    augmented = _augmentation(cfg, model, device, dist.rank)
+
     # -- stage 1: image VAE ------------------------------------------------------------------
     s1 = cfg.image_vae
 
     def image_step(m, idx, train):
         x = pick(tr, train).depth[idx]
-        recon, mu, logvar = m(x, sample=train)
+        recon, mu, logvar = m(augmented(x) if train else x, sample=train)
         loss, metrics = vae_loss(x, recon, mu, logvar, s1.kl_weight)
         metrics["rmse_mm"] = float(np.sqrt(metrics["mse"])) * scales.depth_scale_mm
         return loss, metrics
@@ -275,7 +278,12 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
 
     def proj_step(m, idx, train):
         t = pick(tr, train)
-        z = m(t.z_image[idx])
+        if train and cfg.augmentation is not None:
+            with torch.no_grad():
+                z_image = model.image_vae.encoder(augmented(t.depth[idx]))[0]
+        else:
+            z_image = t.z_image[idx]
+        z = m(z_image)
         pred = decoder(z) * mask
         mse = torch.mean((pred - t.disp[idx]) ** 2)
         lat = torch.mean((z - t.z_mesh[idx]) ** 2)
@@ -327,6 +335,18 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         plot_curves(hist, run_dir / "learning_curves.png")
     distributed.barrier(dist)
     return metrics
+
+
+def _augmentation(cfg: TrainConfig, model: Predictor, device: torch.device, rank: int):
+    """x (B, 1, R, R) normalised depth -> augmented copy (identity without ``cfg.augmentation``)."""
+    if cfg.augmentation is None:
+        return lambda x: x
+    from training.augment import Augmenter
+
+    aug = Augmenter(cfg.augmentation, cfg.model.image.resolution, device=device)
+    generator = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + rank + 1)
+    scale = model.norm.depth_scale_mm.to(device)
+    return lambda x: aug(x * scale, generator) / scale
 
 
 @torch.no_grad()
