@@ -34,8 +34,10 @@ import torch
 
 from training.config import AugmentationConfig
 
-#: Perlin maps computed once per :class:`Augmenter`.
+#: Perlin maps computed once per :class:`Augmenter`, PERLIN_MARGIN pixels larger than the map
+#: (crops at random offsets).
 PERLIN_BANK = 256
+PERLIN_MARGIN = 64
 
 
 class Augmenter:
@@ -84,23 +86,25 @@ class Augmenter:
 
     def _perlin_bank(self, n: int) -> torch.Tensor:
         g = torch.Generator(device=self.device).manual_seed(0x5045524C)
-        total = torch.zeros(n, self.resolution, self.resolution, device=self.device)
+        side = self.resolution + PERLIN_MARGIN
+        total = torch.zeros(n, side, side, device=self.device)
         for wl in self.cfg.perlin_wavelengths_mm:
-            total = total + wl * _perlin_octave(n, self.resolution, wl / self.pitch_mm, self.device, g)
-        return total / total.pow(2).mean(dim=(1, 2), keepdim=True).sqrt().clamp(min=1e-12)
+            total = total + wl * _perlin_octave(n, side, wl / self.pitch_mm, self.device, g)
+        return total
 
     def perlin(self, b: int, generator: torch.Generator | None) -> torch.Tensor:
         """(B, R, R) gradient noise, unit RMS per map: octaves of ``perlin_wavelengths_mm`` with
-        amplitudes proportional to their wavelengths (a map of the bank, randomly flipped,
-        transposed and rolled)."""
+        amplitudes proportional to their wavelengths (a random crop of a map of the bank, randomly
+        flipped and transposed)."""
         k = torch.randint(len(self.perlin_bank), (b,), device=self.device, generator=generator)
-        maps = self.perlin_bank[k]
+        r = self.resolution
+        i0, j0 = (int(v) for v in torch.randint(PERLIN_MARGIN + 1, (2,), generator=generator, device=self.device))
+        maps = self.perlin_bank[k, i0:i0 + r, j0:j0 + r]
+        maps = maps / maps.pow(2).mean(dim=(1, 2), keepdim=True).sqrt().clamp(min=1e-12)
         flip = torch.randint(8, (b,), device=self.device, generator=generator)
         maps = torch.where((flip & 1).bool()[:, None, None], maps.flip(1), maps)
         maps = torch.where((flip & 2).bool()[:, None, None], maps.flip(2), maps)
-        maps = torch.where((flip & 4).bool()[:, None, None], maps.transpose(1, 2), maps)
-        shift = torch.randint(self.resolution, (2,), generator=generator, device=self.device)
-        return torch.roll(maps, (int(shift[0]), int(shift[1])), dims=(1, 2))
+        return torch.where((flip & 4).bool()[:, None, None], maps.transpose(1, 2), maps)
 
 
 def _uniform(b, lo_hi, device, generator) -> torch.Tensor:

@@ -239,7 +239,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
         b = step(torch.as_tensor(depth), torch.zeros(len(depth), 128, 128), weight)
     program_diff = float(max((x.float() - y.float()).abs().max() for x, y in zip(a, b)))
     rng = np.random.default_rng(1)
-    perturbed = {n: w + rng.normal(0, 0.01 * (float(np.abs(w).std()) + 1e-6), w.shape).astype(np.float32)
+    perturbed = {n: w + rng.normal(0, 0.2 * (float(np.abs(w).std()) + 1e-6), w.shape).astype(np.float32)
                  for n, w in loaded.weights().items()}
     loaded.load_weights(perturbed)
     with torch.no_grad():
