@@ -11,7 +11,8 @@ Measures, in one run:
   over repeated steps, as steps/s and maps/s; against the same step of the eager torch module
   rebuilt from the training code and bundle when ``--bundle`` is given (ratio = overhead of the
   exported program), and the renderer's share of the step;
-* **renderer**: the step's fixed-shape differentiable renderer against the batched rasteriser
+* **renderer**: the step's fixed-shape differentiable renderer (the training module the program
+  was captured from) against the batched rasteriser
   of the simulator (:class:`tactile_deploy.camera.depth_torch.TorchDepthCamera`, no gradient,
   variable shapes), forward at batch 16;
 * **200 frames**: ``tactile-deploy adapt`` on a copy of the plugin fed ``--frames`` frames of its
@@ -150,7 +151,9 @@ def main(argv=None) -> int:
     pad = load_pad()
     with torch.no_grad():
         disp = program(d, t, weight)[3].to(args.device)
-    renderer = program.module.renderer
+    from training.adaptation.render import DepthRenderer
+
+    renderer = DepthRenderer.for_pad(pad, pixels_per_triangle=program.card.pixels_per_triangle).to(args.device)
     with torch.no_grad():
         r_ours = median_time(lambda: renderer(disp[:, :pad.n_plane]), max(3, args.repeat // 2), args.device)
         cam = TorchDepthCamera(pad, device=args.device, dtype=torch.float32)

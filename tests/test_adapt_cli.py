@@ -1,0 +1,101 @@
+"""``tactile-deploy adapt`` end to end on the shipped gelslim2 plugin's frames (a copy of the
+plugin), with the committed adaptation step of the committed family model: a new version only
+when the held-out error improves, the adapted plugin runs in ``tactile-deploy run``, rollback;
+and a clear message without torch."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("onnx")
+
+from typer.testing import CliRunner  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+STEP = ROOT / "exported" / "gelslim_mesh_adapt"
+
+
+@pytest.fixture()
+def plugin_copy(tmp_path):
+    """The shipped gelslim2 plugin copied (without adapted versions), pointing at the family model."""
+    if not (STEP / "card.json").is_file():
+        pytest.fail(f"{STEP} is missing: export it with `python -m training export-adapt --bundle MODEL.pt` "
+                    "for the committed exported/gelslim_mesh.onnx")
+    folder = tmp_path / "gelslim2"
+    shutil.copytree(ROOT / "plugins" / "gelslim2", folder, ignore=shutil.ignore_patterns("adapted"))
+    sys.path.insert(0, str(ROOT / "plugins"))
+    try:
+        from build_shipped import relink_model
+    finally:
+        sys.path.remove(str(ROOT / "plugins"))
+    relink_model(folder, ROOT / "exported" / "gelslim_mesh.onnx")
+    return folder
+
+
+def _adapt(folder, *extra):
+    from tactile_deploy.cli.main import app
+
+    return CliRunner().invoke(app, ["adapt", "--sensor", str(folder), "--source", "demo", "--batch", "8",
+                                    "--step", str(STEP), *extra])
+
+
+def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
+    from tactile_deploy.cli.main import app
+    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
+    from tactile_deploy.runtime.predictor import MeshPredictor
+
+    res = _adapt(plugin_copy, "--steps", "6")
+    assert res.exit_code == 0, res.output
+    assert "held-out label-free RMSE" in res.output and "new version 1" in res.output, res.output
+    report = json.loads((plugin_copy / "adapted" / "v1" / "report.json").read_text())
+    assert report["heldout_rmse_after_mm"] < report["heldout_rmse_before_mm"]
+    assert report["frames"] == {"adapt": 50, "held_out": 10}
+    assert report["parity_fp32_onnx_vs_step_max_abs_diff_mm"] <= 1e-4
+    assert (plugin_copy / "adapted" / "v1" / "adaptation.png").stat().st_size > 10_000
+    plugin = SensorPlugin.load(plugin_copy)
+    assert plugin.manifest.adapted_model.path == "adapted/v1/model.onnx"
+    assert validate_plugin(plugin_copy).ok
+    predictor = MeshPredictor.from_plugin(plugin_copy)
+    assert predictor.model_path == (plugin_copy / "adapted" / "v1" / "model.onnx").resolve()
+    assert predictor.metadata["adapted"] == "true"
+    run = CliRunner().invoke(app, ["run", "--sensor", str(plugin_copy), "--max-frames", "5", "--no-forces",
+                                   "--out", str(tmp_path / "run"), "--format", "ply"])
+    assert run.exit_code == 0, run.output
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["frames"] == 5
+    back = CliRunner().invoke(app, ["adapt", "--sensor", str(plugin_copy), "--rollback"])
+    assert back.exit_code == 0 and "the family model" in back.output
+    assert SensorPlugin.load(plugin_copy).manifest.adapted_model is None
+    assert (plugin_copy / "adapted" / "v1" / "model.onnx").is_file()  # kept
+
+
+def test_no_improvement_writes_nothing(plugin_copy):
+    """lr 0: the weights cannot change, so the held-out error cannot improve."""
+    before = (plugin_copy / "plugin.json").read_text()
+    res = _adapt(plugin_copy, "--steps", "2", "--lr", "0")
+    assert res.exit_code == 0, res.output
+    assert "keeps its current model" in res.output
+    assert (plugin_copy / "plugin.json").read_text() == before
+    assert not (plugin_copy / "adapted" / "v1").exists()
+
+
+def test_without_torch_the_message_says_what_to_install(plugin_copy):
+    script = textwrap.dedent(f"""
+        import sys
+        sys.modules["torch"] = None
+        from tactile_deploy.cli.main import main
+        sys.argv = ["tactile-deploy", "adapt", "--sensor", {str(plugin_copy)!r}, "--steps", "1"]
+        main()
+        """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                         env={**os.environ, "COLUMNS": "200"})
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "pip install 'tactile-deploy[adapt]'" in res.stderr
