@@ -4,21 +4,27 @@
 (same 128 x 128 grid over +-17.5 mm, row 0 at the largest y, ``depth = rest z - deformed z`` at
 each pixel centre, the lowest surface where folds overlap, 0 outside the rest outline and where
 nothing covers a centre), and is differentiable in the vertex displacements, lateral ones
-included: inside a triangle the depth is the barycentric interpolation of its vertices' z, and
-the barycentric weights are edge functions of the deformed xy positions.
+included: inside a triangle the depth is the plane through its deformed vertices (the
+barycentric interpolation of their z, with weights from their deformed xy positions).
 
-Method: the rules and the watertight edge functions of
-:class:`tactile_deploy.camera.depth_torch.TriangleRasterizer` (edge functions always evaluated
-from the lower-index vertex of an edge, as integer pixel steps from a fixed reference pixel plus
-a precomputed offset, so that neighbouring triangles agree exactly on shared edges and float32
-keeps ~1e-7 mm), with one change so that the module can be captured by ``torch.export``: every
+Method, in two passes:
+
+1. *which triangle each pixel centre sees* (no gradient): the rules and the watertight edge
+   functions of :class:`tactile_deploy.camera.depth_torch.TriangleRasterizer` (edge functions
+   always evaluated from the lower-index vertex of an edge, as integer pixel steps from a fixed
+   reference pixel plus a precomputed offset, so that neighbouring triangles agree exactly on
+   shared edges), the lowest covering triangle winning;
+2. *its depth there* (differentiable): the plane through the winning triangle's deformed
+   vertices at the pixel centre, clamped to the triangle's z range (the steep-facet rule). Only
+   this pass is recorded by autograd: one gather of 5 plane coefficients per pixel.
+
+One change to the rules makes the module capturable by ``torch.export``: every
 triangle visits a **fixed** number ``pixels_per_triangle`` of pixel centres, enumerated row by
 row in the bounding box of its deformed xy outline. The rest boxes of the shipped pad hold at
 most 20 pixels (5 x 5 at most); the default of 36 leaves room for every box to grow by one pixel
 column and row (lateral displacements up to ~0.27 mm across a triangle). Triangles whose
 deformed box holds more pixels than that are counted in the ``overflow`` output (those pixels
-may be missed); the steep-triangle rule is evaluated for every triangle and selected with
-``torch.where`` (no data-dependent branch).
+may be missed). No data-dependent branch anywhere.
 
 Shapes: displacements (B, n_plane, 3) mm of the sensing nodes (sensor frame), depth (B, 128, 128)
 mm pushed in, image rows (row 0 = largest y).
@@ -106,6 +112,9 @@ class DepthRenderer(nn.Module):
         buf("mask", mask, torch.bool)                                 # (ny, nx) grid rows
         buf("z_rest", np.where(mask, z_rest, 0.0))                    # (ny, nx) mm
         buf("pixel_step", np.arange(self.pixels_per_triangle), torch.int64)
+        buf("rest_xyz", rest)                                         # (n, 3) mm
+        buf("pixel_x", grid.x0_mm + (np.arange(self.nx * self.ny) % self.nx) * p)   # (ny * nx,) mm
+        buf("pixel_y", grid.y0_mm + (np.arange(self.nx * self.ny) // self.nx) * p)
 
     @classmethod
     def for_pad(cls, pad=None, **kwargs) -> "DepthRenderer":
@@ -190,22 +199,25 @@ class DepthRenderer(nn.Module):
         return torch.where(first < big, torch.div(first, self.pixels_per_triangle, rounding_mode="floor"), -1)
 
     def _surface_z(self, u, face) -> torch.Tensor:
-        """z (B, ny * nx) mm of the surface at each pixel centre, from the triangle ``face``
+        """z (B, ny * nx) mm of the surface at each pixel centre, from the plane of triangle
+        ``face`` through its deformed vertices, clamped to the triangle's z range
         (differentiable in ``u``; 0 where ``face`` is -1)."""
         b = u.shape[0]
-        exs, eys, _, zv, inv_area, _, ua = self._triangles(u)
-        f = face.clamp(min=0)  # (B, npix)
-        pix = torch.arange(self.nx * self.ny, device=u.device)
-        col, row = (pix % self.nx)[:, None], torch.div(pix, self.nx, rounding_mode="floor")[:, None]
-
-        def take(x):  # (B, t, ...) -> (B, npix, ...)
-            idx = f.reshape(b, -1, *([1] * (x.ndim - 2))).expand(-1, -1, *x.shape[2:])
-            return torch.gather(x, 1, idx)
-
-        e = _edge_functions(col, row, take(exs), take(eys), take(ua), self.edge_ref[f], self.edge_offset[f],
-                            self.pitch_mm)
-        zf = take(zv)
-        z = _interpolate(e, zf, take(inv_area))
+        v = self.rest_xyz + u  # (B, n, 3) deformed sensing nodes, sensor frame
+        tri = v[:, self.faces]  # (B, t, 3 vertices, 3)
+        d1 = tri[:, :, 1] - tri[:, :, 0]
+        d2 = tri[:, :, 2] - tri[:, :, 0]
+        area2 = d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]
+        inv = 1.0 / torch.where(area2 != 0, area2, torch.ones_like(area2))
+        gx = (d1[..., 2] * d2[..., 1] - d2[..., 2] * d1[..., 1]) * inv  # dz/dx of the plane
+        gy = (d2[..., 2] * d1[..., 0] - d1[..., 2] * d2[..., 0]) * inv  # dz/dy
+        x0, y0, z0 = tri[:, :, 0, 0], tri[:, :, 0, 1], tri[:, :, 0, 2]
+        zs = tri[..., 2]
+        coef = torch.stack([z0 - gx * x0 - gy * y0, gx, gy, zs.amin(dim=-1), zs.amax(dim=-1)], dim=-1)  # (B, t, 5)
+        f = face.clamp(min=0)
+        c = torch.gather(coef, 1, f[..., None].expand(b, -1, 5))  # (B, npix, 5)
+        z = c[..., 0] + c[..., 1] * self.pixel_x + c[..., 2] * self.pixel_y
+        z = torch.minimum(torch.maximum(z, c[..., 3]), c[..., 4])
         return torch.where(face >= 0, z, torch.zeros_like(z))
 
 
