@@ -236,6 +236,23 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
         q_disp = np.concatenate([q.run(["displacement"], {"depth": d[i:i + 32]})[0] for i in range(0, len(d), 32)])
         out["int8_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((q_disp - onnx_disp) ** 2)))
         out["int8_vs_fp32_max_abs_diff_mm"] = float(np.abs(q_disp - onnx_disp).max())
+    out.update(_ood_shares(card.path(step.folder, "family_model"), folder / "model.onnx", d))
+    return out
+
+
+def _ood_shares(family: Path, adapted: Path, depth: np.ndarray) -> dict:
+    """Share of the held-out maps above the model's ood_threshold, family vs adapted model (the
+    adapted encoder feeds the same out-of-distribution decoder)."""
+    from tactile_deploy.runtime.predictor import make_session
+
+    out = {}
+    for key, path in (("family", family), ("adapted", adapted)):
+        sess = make_session(path, threads=1, providers="cpu")
+        meta = sess.get_modelmeta().custom_metadata_map
+        if "ood_threshold" not in meta:
+            return {}
+        ood = np.concatenate([sess.run(["ood_score"], {"depth": depth[i:i + 32]})[0] for i in range(0, len(depth), 32)])
+        out[f"ood_share_above_threshold_{key}"] = float(np.mean(ood > float(meta["ood_threshold"])))
     return out
 
 
@@ -280,13 +297,17 @@ def summary_lines(result: AdaptResult) -> list[str]:
     r = result.report
     lines = [
         f"held-out label-free RMSE: {result.before.rmse_mm * 1e3:.2f} um -> {result.after.rmse_mm * 1e3:.2f} um "
-        f"({result.n_held_out} frames; {'improved' if result.improved else 'not improved'})",
+        f"({100 * (result.after.rmse_mm / result.before.rmse_mm - 1):+.2f} %, {result.n_held_out} frames; "
+        f"{'improved' if result.improved else 'not improved'})",
         f"adaptation loss: {math.sqrt(r['train_loss_first_mm2']) * 1e3:.2f} -> {math.sqrt(r['train_loss_last_mm2']) * 1e3:.2f} um "
         f"RMS over {r['settings']['steps']} steps, {r['adapt_seconds']:.1f} s ({r['steps_per_s']:.2f} steps/s)",
     ]
     if "parity_fp32_onnx_vs_step_max_abs_diff_mm" in r:
         lines.append(f"adapted ONNX vs step program: max {r['parity_fp32_onnx_vs_step_max_abs_diff_mm']:.2e} mm"
                      + (f"; int8 vs fp32 RMS {r['int8_vs_fp32_rms_diff_mm'] * 1e3:.2f} um" if r.get("int8") else ""))
+    if "ood_share_above_threshold_adapted" in r:
+        lines.append(f"held-out frames flagged out of distribution: {100 * r['ood_share_above_threshold_family']:.0f} % "
+                     f"(family model) -> {100 * r['ood_share_above_threshold_adapted']:.0f} % (adapted)")
     if r.get("renderer_overflow"):
         lines.append(f"warning: {r['renderer_overflow']} triangles exceeded the renderer's pixel budget "
                      "(very large lateral displacements); their pixels may be missing from the loss")
