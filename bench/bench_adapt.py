@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=20, help="timed steps of the step benchmark")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--small", action="store_true", help="a few steps and frames (tests)")
+    ap.add_argument("--small", action="store_true", help="a few steps on the demo clip's frames (tests)")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     if args.small:
@@ -130,8 +130,16 @@ def main(argv=None) -> int:
     plugin = SensorPlugin.load(args.plugin)
     step_dir = args.step or default_step_folder(plugin)
     t_frames = time.perf_counter()
-    frames = virtual_frames(plugin.name, args.frames) if plugin.name in ("gelslim1", "gelslim2") else None
-    if frames is None:
+    if args.small:  # the plugin's demo clip: no simulation needed
+        from tactile_deploy.runtime.sources.factory import open_clip
+
+        with open_clip(plugin.demo_clip_path()) as src:
+            frames = [f.image for f in src][: args.frames]
+        origin = "its demo clip"
+    elif plugin.name in ("gelslim1", "gelslim2"):
+        frames = virtual_frames(plugin.name, args.frames)
+        origin = f"the virtual {plugin.name}"
+    else:
         raise SystemExit(f"bench adapt renders frames with the virtual sensor of the same name; {plugin.name} has none")
     t_frames = time.perf_counter() - t_frames
     pipe = ImagingPipeline.from_plugin(plugin)
@@ -207,7 +215,7 @@ def main(argv=None) -> int:
     lines = [
         f"`tactile-deploy bench adapt --device {args.device}`; {dev_name}, torch {torch.__version__}, "
         f"{threads} threads; step program `{Path(step_dir).relative_to(ROOT) if Path(step_dir).is_relative_to(ROOT) else step_dir}`; "
-        f"frames: {len(frames)} of the virtual {plugin.name} (rendering them took {t_frames:.0f} s, not counted).",
+        f"frames: {len(frames)} of {origin} (making them took {t_frames:.0f} s, not counted).",
         "",
         "| measure | value | baseline | ratio |",
         "|---|---|---|---|",

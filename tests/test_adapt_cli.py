@@ -99,3 +99,14 @@ def test_without_torch_the_message_says_what_to_install(plugin_copy):
                          env={**os.environ, "COLUMNS": "200"})
     assert res.returncode == 2, res.stderr[-2000:]
     assert "pip install 'tactile-deploy[adapt]'" in res.stderr
+
+
+def test_benchmark_runs_at_small_settings(capsys):
+    sys.path.insert(0, str(ROOT))
+    try:
+        from bench.bench_adapt import main
+    finally:
+        sys.path.remove(str(ROOT))
+    assert main(["--small", "--no-write"]) == 0
+    out = capsys.readouterr().out
+    assert "steps/s" in out and "adapt on 24 frames" in out

@@ -38,7 +38,7 @@ def test_renderer_matches_the_depth_camera_within_1um(pad, dtype):
     assert overflow.tolist() == [0, 0, 0, 0]
     for i in range(len(u)):
         ref = cam.render(pad, pad.vertices[: pad.n_plane] + u[i]).depth_mm
-        assert np.abs(depth[i].double().numpy() - ref).max() < 1e-3 * 1e-3 * 10  # 10 nm: far inside 1 um
+        assert np.abs(depth[i].double().numpy() - ref).max() < 1e-5  # spec 1 um; measured 3e-8 (f64), 5e-7 mm (f32)
         assert ref.max() > 0.25
 
 

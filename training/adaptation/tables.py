@@ -109,6 +109,25 @@ def run_adaptation(model: Model, domain: Domain, start: dict, steps: int, use_fi
                                      "loss_last_mm2": hist.loss_mm2[-1]}
 
 
+def tune_lr(model: Model, domain: Domain, lrs: list[float], steps: int, n_valid: int = 40, log=print) -> dict:
+    """Label-free choice of the learning rate, as a device could make it: adapt on the first
+    maps of ``domain`` (its adaptation part), measure the label-free RMSE on its last
+    ``n_valid`` maps; returns {lr: rmse_mm} (and the start)."""
+    from tactile_deploy.adapt.step import evaluate
+
+    fit, valid = domain.split(len(domain) - n_valid)
+    target = model.targets(valid)
+    model.program.load_weights(model.family)
+    out = {"start": evaluate(model.program, valid.depth_mm, target, valid.weight).rmse_mm}
+    log(f"start: {out['start'] * 1e3:.2f} um")
+    for lr in lrs:
+        weights, info = run_adaptation(model, fit, model.family, steps, lr=lr)
+        model.program.load_weights(weights)
+        out[lr] = evaluate(model.program, valid.depth_mm, target, valid.weight).rmse_mm
+        log(f"lr {lr:g}: {out[lr] * 1e3:.2f} um ({info['seconds']:.0f} s)")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clean", type=Path, required=True, help="training run without augmentation")
@@ -121,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=WORK)
     ap.add_argument("--write", type=Path, default=None, help="write the tables into this markdown file's section")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--tune-lr", type=float, nargs="+", default=None,
+                    help="only choose the learning rate (label-free, on gelslim1's adaptation maps) and stop")
+    ap.add_argument("--tune-model", choices=["clean", "aug"], default="aug")
     args = ap.parse_args(argv)
     import torch
 
@@ -134,8 +156,13 @@ def main(argv=None) -> int:
     balls = load_or_make("real-balls", 42, 0, domains_dir)
     split["real-balls"] = balls.split(30)
     sim = load_or_make("sim", args.n_eval, 1000 + args.seed, domains_dir)
+    runs = {"clean": args.clean, "aug": args.aug}
+    if args.tune_lr:
+        _, step = export_model(runs[args.tune_model], args.work / "models" / args.tune_model)
+        print(json.dumps(tune_lr(Model(args.tune_model, step), split["gelslim1"][0], args.tune_lr, args.steps), indent=1))
+        return 0
     models = {}
-    for key, run in (("clean", args.clean), ("aug", args.aug)):
+    for key, run in runs.items():
         _, step = export_model(run, args.work / "models" / key)
         models[key] = Model(key, step)
     results: dict = {"settings": vars(args) | {"clean": str(args.clean), "aug": str(args.aug),
