@@ -250,3 +250,18 @@ def test_card_problems_name_the_file_and_field(tiny, tmp_path):
     (tmp_path / "card.json").write_text(json.dumps(doc))
     with pytest.raises(CardError, match="trainable"):
         load_card(tmp_path)
+
+
+def test_program_moves_to_another_device_whole(tiny):
+    """The program exported on the CPU runs on another device (here PyTorch's meta device, as
+    a stand-in for CUDA): no tensor the graph creates stays on the CPU, forward and backward."""
+    from tactile_deploy.adapt.step import StepProgram
+
+    program = StepProgram.load(tiny["step"], device="meta")
+    graph = program.module.graph
+    assert not [n for n in graph.nodes if "cpu" in str(n.kwargs.get("device", ""))]
+    out = program(torch.zeros(3, 1, 128, 128, device="meta"), torch.zeros(3, 128, 128, device="meta"),
+                  torch.zeros(128, 128, device="meta"))
+    assert all(o.device.type == "meta" for o in out)
+    out[0].backward()
+    assert all(p.grad is not None and p.grad.device.type == "meta" for p in program.trainable())

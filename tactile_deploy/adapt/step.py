@@ -63,17 +63,21 @@ class StepProgram:
         folder = Path(folder)
         card = load_card(folder)
         path = _verified(card, folder, "step")
-        try:
-            module = torch.export.load(str(path)).module()
-        except Exception as e:  # torch raises several types for damaged or foreign files
-            raise CardError(f"{path}: torch cannot load the step program ({type(e).__name__}: {e}); it was "
-                            f"exported with torch {card.versions.get('torch')}, this is torch {torch.__version__}: "
-                            "export the step again with this torch") from None
         dev = torch.device(device)
         if dev.type == "cuda" and not torch.cuda.is_available():
             raise AdaptationUnavailable("--device cuda was asked for, but this torch has no CUDA device; use "
                                         "--device cpu or install a CUDA build of torch")
-        module = module.to(dev)
+        try:
+            program = torch.export.load(str(path))
+        except Exception as e:  # torch raises several types for damaged or foreign files
+            raise CardError(f"{path}: torch cannot load the step program ({type(e).__name__}: {e}); it was "
+                            f"exported with torch {card.versions.get('torch')}, this is torch {torch.__version__}: "
+                            "export the step again with this torch") from None
+        if dev.type != "cpu":  # weights and the devices of tensors the graph creates (exported on the CPU)
+            from torch.export.passes import move_to_device_pass
+
+            program = move_to_device_pass(program, dev)
+        module = program.module()
         params = dict(module.named_parameters())
         missing = [n for n in card.trainable if n not in params]
         if missing:
