@@ -265,3 +265,30 @@ def test_program_moves_to_another_device_whole(tiny):
     assert all(o.device.type == "meta" for o in out)
     out[0].backward()
     assert all(p.grad is not None and p.grad.device.type == "meta" for p in program.trainable())
+
+
+def test_runtime_adapts_without_the_training_package(tiny, tmp_path):
+    """Load the step, filter, run Adam steps and write the adapted ONNX model in a process where
+    importing ``training`` fails."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(f"""
+        import sys
+        sys.modules["training"] = None
+        import numpy as np
+        from tactile_deploy.adapt.step import AdaptSettings, StepProgram, adapt, vae_filter
+        from tactile_deploy.adapt.weights import write_adapted_onnx
+        step = StepProgram.load({str(tiny["step"])!r})
+        depth = np.zeros((4, 128, 128), np.float32)
+        depth[:, 50:70, 60:80] = 0.5
+        target = vae_filter(step, depth)
+        hist = adapt(step, depth, target, np.ones((128, 128), np.float32), AdaptSettings(steps=2, batch_size=4))
+        write_adapted_onnx(step.card, step.card.path(step.folder, "fp32_model"), step.weights(), {str(tmp_path / "a.onnx")!r})
+        assert not any(k.split(".")[0] == "training" for k in sys.modules if sys.modules[k] is not None)
+        print("ok", len(hist.loss_mm2))
+        """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert res.returncode == 0 and res.stdout.strip() == "ok 2", res.stderr[-3000:]
+    assert (tmp_path / "a.onnx").stat().st_size > 0

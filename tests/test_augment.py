@@ -43,7 +43,7 @@ def test_configs_without_augmentation_train_as_before():
         assert TrainConfig.load(configs / f"{aug}.json").augmentation is not None
         b.pop("augmentation")
         if clean == "cpu_adapt":
-            assert (a["image_vae"].pop("epochs"), b["image_vae"].pop("epochs")) == (12, 24)
+            assert (a["image_vae"].pop("epochs"), b["image_vae"].pop("epochs")) == (12, 18)
         assert {k: v for k, v in a.items() if k != "run_dir"} == {k: v for k, v in b.items() if k != "run_dir"}
 
 
