@@ -6,6 +6,7 @@
     python -m training report-coarsening --data DATA.npz [--png FIGURE.png]
     python -m training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
     python -m training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
+    python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
     python -m training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
 """
 
@@ -45,7 +46,26 @@ def main(argv: list[str] | None = None) -> int:
     p_held.add_argument("--run", required=True, help="run folder holding config.json")
     p_held.add_argument("--n", type=int, default=512, help="contacts")
     p_held.add_argument("--seed", type=int, default=1007, help="generator seed (not the training seed)")
+    p_eval = sub.add_parser("evaluate", help="the model against the physics baseline on five domains (training/evaluation.py)")
+    p_eval.add_argument("--model", default="exported/gelslim_mesh.onnx", help="ONNX model")
+    p_eval.add_argument("--out", required=True, help="JSON report to write")
+    p_eval.add_argument("--n", type=int, default=256, help="contacts per domain (large_strain: n / 8)")
+    p_eval.add_argument("--seed", type=int, default=2024)
+    p_eval.add_argument("--domains", default=None, help="comma-separated subset of the domains")
+    p_eval.add_argument("--shared", default="../shared/data/indenters", help="folder of the shared STL indenters")
     args = parser.parse_args(argv)
+
+    if args.command == "evaluate":
+        from pathlib import Path
+
+        from tactile_deploy.atomic import write_json
+        from training.evaluation import DOMAINS, run_evaluation
+
+        domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
+        report = run_evaluation(args.model, args.n, args.seed, domains, Path(args.shared))
+        write_json(args.out, report)
+        print(f"wrote {args.out}")
+        return 0
 
     if args.command == "heldout":
         from pathlib import Path
@@ -54,17 +74,15 @@ def main(argv: list[str] | None = None) -> int:
 
         from tactile_deploy.atomic import write_npz
         from training.config import TrainConfig
-        from training.data import generate
+        from training.data import fresh_contacts
 
         cfg = TrainConfig.load(Path(args.run) / "config.json")
         if cfg.data.synthetic is None:
             raise SystemExit(f"{args.run}: the run reads a dataset folder; its held-out split is already on disk")
-        if args.seed == cfg.data.synthetic.seed:
-            raise SystemExit(f"--seed {args.seed} is the training seed: choose another so that no contact is shared")
-        spec = cfg.data.synthetic.model_copy(
-            update={"n_samples": args.n, "seed": args.seed, "generator": "cpu", "envelope_bank": None}
-        )
-        data = generate(spec)
+        try:
+            data = fresh_contacts(cfg.data.synthetic, args.n, args.seed)
+        except ValueError as exc:
+            raise SystemExit(f"--seed: {exc}") from None
         write_npz(Path(args.run) / "heldout.npz", depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
                   indenter=data.indenter, source=np.array(data.source))
         print(f"wrote {args.run}/heldout.npz: {len(data)} contacts ({data.source})")

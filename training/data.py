@@ -193,6 +193,15 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic seed={spec.seed} rank={rank}")
 
 
+def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
+    """``n`` new contacts of ``spec``'s distribution (same indenters and pose ranges, another
+    ``seed``), simulated on the CPU: held-out or calibration maps for a run whose data were
+    generated inside the training job and not stored."""
+    if seed == spec.seed:
+        raise ValueError(f"seed {seed} is the training seed: choose another so that no contact is shared")
+    return generate(spec.model_copy(update={"n_samples": n, "seed": seed, "generator": "cpu", "envelope_bank": None}))
+
+
 def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: int = 16384) -> ContactData:
     """Like :func:`generate`, with the batched torch simulator on ``device`` (exact same physics).
 
