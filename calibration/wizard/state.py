@@ -67,6 +67,8 @@ class WizardState(BaseModel):
     config: dict = Field(description="The wizard config the steps were run with.")
     started: str = Field(description="ISO time the calibration started.")
     steps: dict[str, StepRecord] = Field(default_factory=dict, description="Finished steps.")
+    plugin_written: str | None = Field(None, description="Plugin folder this calibration wrote "
+                                       "(a redo may replace it without --overwrite).")
 
     def done(self, step: str) -> bool:
         return step in self.steps

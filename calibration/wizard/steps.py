@@ -542,7 +542,8 @@ def step_fem(ctx: Context) -> Outcome:
         "depth_offset_mm": res.depth_offset_mm,
         "forces_measured_n": fm, "forces_fitted_n": fs})
     fig = fem_figure(ctx.work.figures / "fem.png", res.objective_curve, res.nu, fm, fs)
-    metrics = {"contacts": len(contacts), "nu": res.nu, "nu bootstrap std": res.nu_std,
+    metrics = {"contacts": len(contacts), "nu": res.nu,
+               "nu bootstrap std": res.nu_std if math.isfinite(res.nu_std) else "-",
                "E (MPa)": E if res.E_mpa is not None else f"{E} (prior: not identifiable)",
                "E bootstrap std (MPa)": (res.E_std_mpa if res.E_std_mpa is not None else "-"),
                "depth-map gap RMS at the optimum (um)": 1e3 * res.rmse_mm}
@@ -572,7 +573,8 @@ def step_plugin(ctx: Context) -> Outcome:
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
     out = Path(ctx.out)
-    if out.exists() and not ctx.overwrite:
+    ours = ctx.state.plugin_written == str(out.resolve())
+    if out.exists() and not (ctx.overwrite or ours):
         raise StepError(f"{out} exists: pass --overwrite to replace it, or choose another --out")
     if not out.parent.is_dir():
         raise StepError(f"--out: folder {out.parent} does not exist")
@@ -609,6 +611,8 @@ def step_plugin(ctx: Context) -> Outcome:
             shutil.rmtree(old)
         else:
             os.replace(tmp, out)
+        ctx.state.plugin_written = str(out.resolve())
+        ctx.work.save(ctx.state)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)

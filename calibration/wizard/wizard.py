@@ -119,7 +119,7 @@ def _prepare_state(work: WorkFolder, sensor: str, source: str, rig: str | None,
                 "use another --work folder, or --restart to start over")
         stored = wizard_config_from_dict(state.config, str(work.state_path))
         if config_given and stored != config:
-            changed = sorted(k for k in config.model_fields
+            changed = sorted(k for k in type(config).model_fields
                              if getattr(config, k) != getattr(stored, k))
             if redo is None:
                 raise WizardError(
@@ -157,8 +157,8 @@ def _prepare_state(work: WorkFolder, sensor: str, source: str, rig: str | None,
 def _run_step(ctx: Context, step: str, index: int) -> bool:
     """Run one step until the person accepts it (True) or stops (False)."""
     ui = ctx.ui
-    ui.heading(index + 1, len(STEPS), STEP_TITLES[step])
     while True:
+        ui.heading(index + 1, len(STEPS), STEP_TITLES[step])
         try:
             outcome: Outcome = STEP_FUNCTIONS[step](ctx)
         except (StepError, StationError) as e:
@@ -178,8 +178,6 @@ def _run_step(ctx: Context, step: str, index: int) -> bool:
             pick = ui.choose(f"Step '{step}' done. Next?", choices, "accept")
             if pick == "accept":
                 ctx.work.finish(ctx.state, step, outcome.metrics, outcome.figures, outcome.notes)
-                if step == "plugin":
-                    ctx.overwrite = True      # a later redo replaces what this run wrote
                 return True
             if pick == "quit":
                 return False
