@@ -29,9 +29,9 @@ CONFIG = {
     "description": "test unit",
     "reference": {"n_frames": 6},
     "camera": {"n_frames": 1},
-    "presses": {"n_presses": 16},
+    "presses": {"n_presses": 24},
     "shading": {"folds": 4},
-    "fem": {"nu_grid": [0.48], "bootstrap": 0},
+    "fem": {"bootstrap": 0},
     "rig": {"approach_step_mm": 0.2, "approach_clearance_mm": 0.4},
 }
 
@@ -110,8 +110,10 @@ def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
     for i in range(8):
         depth = rng.uniform(0.3, 0.8)
         a = math.sqrt(2 * 3.0 * depth)
-        pose = ContactPose(x_mm=rng.uniform(ig.x_min_mm + 1.3 * a, ig.x_max_mm - 1.3 * a),
-                           y_mm=rng.uniform(ig.y_min_mm + 1.3 * a, ig.y_max_mm - 1.3 * a),
+        # inside the view by two contact radii (near the border the gel sinks beyond the view
+        # and the integration's zero border costs accuracy: docs/calibration.md)
+        pose = ContactPose(x_mm=rng.uniform(ig.x_min_mm + 2 * a, ig.x_max_mm - 2 * a),
+                           y_mm=rng.uniform(ig.y_min_mm + 2 * a, ig.y_max_mm - 2 * a),
                            depth_mm=depth)
         frame = sensor.press(AnalyticSphere(3.0), pose, np.random.default_rng([77, i]))
         truth = to_model(frame.surface_depth_mm.astype(np.float32))
@@ -124,7 +126,7 @@ def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
           f"{np.mean(whole):.1f}); within 1.5 contact radii {np.round(near, 1)} (mean "
           f"{np.mean(near):.1f}); peak {np.round(peak, 1)}")
     assert np.mean(whole) <= 20.0
-    assert np.max(near) < 150.0          # a regression guard, not the 20 um target
+    assert np.max(near) < 80.0           # a regression guard, not the 20 um target
 
 
 def test_camera_mapping_and_material_match_the_planted_sensor(wizard_run, sensor):

@@ -243,7 +243,7 @@ def fit_fem_parameters(
         poses = [c.pose if c.pose is not None else estimate_pose(bank, nu, camera, c, start=p) for c, p in zip(contacts, poses)]
         nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
         evals += more
-        curve += curve2
+        curve = curve2  # the objective at the final contacts
 
     depth_offset = None
     given = [i for i, c in enumerate(contacts) if c.pose is not None and c.force_n is not None]
@@ -254,7 +254,7 @@ def fit_fem_parameters(
                  if c.pose is not None else p for c, p in zip(contacts, poses)]
         nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
         evals += more
-        curve += curve2
+        curve = curve2  # the objective at the final contacts
 
     # bootstrap over contacts (Brent, poses fixed): the spread of nu
     rng = np.random.default_rng(seed)

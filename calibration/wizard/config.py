@@ -131,9 +131,11 @@ class FemSettings(BaseModel):
 
     enabled: bool = Field(True, description="Run the FEM fit (otherwise the prior is used).")
     nu_grid: tuple[float, ...] = Field(
-        (0.40, 0.43, 0.46, 0.49), description="Poisson ratios at which exact surface operators "
-        "are computed (about 20 s each, cached); nu is searched between the first and the last. "
-        "One value fixes nu (then only E is fitted).")
+        (0.48,), description="Poisson ratios at which exact surface operators are computed "
+        "(about 20 s each, cached); with several, nu is searched between the first and the "
+        "last, e.g. [0.40, 0.43, 0.46, 0.49]. One value fixes nu (then only E is fitted): the "
+        "default, because nu from depth maps reconstructed by a shading model is biased "
+        "(docs/calibration.md).")
     method: Literal["brent", "cem"] = Field("brent", description="Search over nu: bounded Brent "
                                             "or the cross-entropy method of the paper.")
     bootstrap: int = Field(10, ge=0, description="Bootstrap resamples for the spread of nu.")

@@ -11,6 +11,7 @@ edited there), ``shading.npz`` (shading), ``fem.json`` (fem), the plugin folder 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable
@@ -215,7 +216,7 @@ def step_camera(ctx: Context) -> Outcome:
     camera = with_grid(fit.mapping, grid)
     save_mapping(camera, ctx.work.path("camera_mapping.json"))
     fig = ctx.work.figures / "camera.png"
-    plot_fit(fit, shown, fig, dpi=80)
+    plot_fit(dataclasses.replace(fit, mapping=camera), shown, fig, dpi=80)
     s = camera.fit
     metrics = {"target": cfg.target, "points used": s.n_points, "points rejected": s.n_rejected,
                "reprojection RMS (px)": s.rms_px, "reprojection max (px)": s.max_px,
@@ -310,11 +311,19 @@ def step_presses(ctx: Context) -> Outcome:
     rect_frames = np.stack([rect(f) for f in raw])
     names = np.array([f"press_{i:03d}.png" for i in range(len(raw))])
     detected = np.full((len(raw), 3), np.nan)
+    tips_a = np.array(tips, np.float64).reshape(-1, 3)
     for i, f in enumerate(rect_frames):
         try:
             detected[i] = detect_contact_circle(f, ref_r, min_radius_px=2.5)
         except ContactNotFoundError as e:
-            notes.append(f"{names[i]}: {e}; left out (correct it by hand to keep it)")
+            if np.all(np.isfinite(tips_a[i])):
+                # the rig knows where it pressed: its centre, and the rigid-sphere contact
+                # radius sqrt(R d) (the fit refines centres and re-measures radii)
+                a_mm = math.sqrt(cfg.ball_radius_mm * max(tips_a[i, 2], 1e-3))
+                detected[i] = [*_grid_px(grid, tips_a[i, :2])[0], a_mm / grid.pitch_x_mm]
+                notes.append(f"{names[i]}: {e}; circle taken from the rig's position")
+            else:
+                notes.append(f"{names[i]}: {e}; left out (correct it by hand to keep it)")
     circles = detected.copy()
     if cfg.annotations:
         from calibration.shading.presses import PressDataError, read_annotations
@@ -457,9 +466,12 @@ def step_shading(ctx: Context) -> Outcome:
         figures.append(cross_validation_figure(ctx.work.figures / "shading_cv.png", res, radius,
                                                pitch))
         if s.shape_mean_um > 20 or s.shape_worst_um > 40 or s.radius_error_worst > 0.05:
-            notes.append("held-out figures miss the targets (shape error <= 20 um mean, <= 40 um "
-                         "worst; radius within 5 %): check the circles, add presses or press "
-                         "deeper")
+            a_px = presses.circles[:, 2]
+            notes.append(f"held-out figures miss the targets set on real presses (shape error "
+                         f"<= 20 um mean, <= 40 um worst; radius within 5 %): check the circles, "
+                         f"add presses or press deeper. Here the contacts span {a_px.min():.0f}-"
+                         f"{a_px.max():.0f} px of the imaging grid: below ~10 px the fitted "
+                         "radius of a cap is poorly conditioned")
     # four presses: nearest to the centre, farthest from it, deepest, shallowest
     h, w = presses.shape
     dist = np.hypot(presses.circles[:, 0] - (w - 1) / 2, presses.circles[:, 1] - (h - 1) / 2)
@@ -543,7 +555,8 @@ def step_fem(ctx: Context) -> Outcome:
         "forces_measured_n": fm, "forces_fitted_n": fs})
     fig = fem_figure(ctx.work.figures / "fem.png", res.objective_curve, res.nu, fm, fs)
     metrics = {"contacts": len(contacts), "nu": res.nu,
-               "nu bootstrap std": res.nu_std if math.isfinite(res.nu_std) else "-",
+               "nu bootstrap std": (res.nu_std if math.isfinite(res.nu_std)
+                                    and len(cfg.nu_grid) > 1 else "-"),
                "E (MPa)": E if res.E_mpa is not None else f"{E} (prior: not identifiable)",
                "E bootstrap std (MPa)": (res.E_std_mpa if res.E_std_mpa is not None else "-"),
                "depth-map gap RMS at the optimum (um)": 1e3 * res.rmse_mm}
