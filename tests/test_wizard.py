@@ -222,8 +222,9 @@ def test_interactive_wizard_through_a_pty(tmp_path):
     from calibration.wizard.state import WorkFolder
     from tactile_deploy.runtime.plugins import validate_plugin
 
-    cfg = tmp_path / "cfg.json"
-    cfg.write_text(json.dumps(CONFIG))
+    cfg = tmp_path / "cfg.json"       # fewer frames and presses: the dialogue is under test
+    cfg.write_text(json.dumps({**CONFIG, "reference": {"n_frames": 3},
+                               "presses": {"n_presses": 10}, "shading": {"folds": 2}}))
     out = tmp_path / "unit7"
     cmd = [sys.executable, "-m", "tactile_deploy.cli.main", "calibrate", "--sensor", "unit7",
            "--source", f"virtual:{SENSOR}", "--rig", "simulated", "--config", str(cfg),

@@ -246,15 +246,17 @@ def fit_fem_parameters(
         curve = curve2  # the objective at the final contacts
 
     depth_offset = None
+    poses0 = list(poses)
     given = [i for i, c in enumerate(contacts) if c.pose is not None and c.force_n is not None]
     if fit_depth_offset and len(given) >= 3:
-        depth_offset = fit_depth_offset_mm(bank, nu, [contacts[i] for i in given],
-                                           [poses[i] for i in given])
-        poses = [p.model_copy(update={"depth_mm": p.depth_mm + depth_offset})
-                 if c.pose is not None else p for c, p in zip(contacts, poses)]
-        nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
-        evals += more
-        curve = curve2  # the objective at the final contacts
+        given_poses = [poses[i] for i in given]
+        for _ in range(2):  # offset at this nu, nu at the corrected contacts, twice
+            depth_offset = fit_depth_offset_mm(bank, nu, [contacts[i] for i in given], given_poses)
+            poses = [p.model_copy(update={"depth_mm": p.depth_mm + depth_offset})
+                     if c.pose is not None else p for c, p in zip(contacts, poses0)]
+            nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
+            evals += more
+            curve = curve2  # the objective at the final contacts
 
     # bootstrap over contacts (Brent, poses fixed): the spread of nu
     rng = np.random.default_rng(seed)

@@ -174,8 +174,9 @@ def step_camera(ctx: Context) -> Outcome:
         if st.rig is not None:
             frames, record = _rig_press(st, plate, (0.0, 0.0, cfg.press_depth_mm), cfg.n_frames)
             if frames is None:
-                raise StepError(f"the target press stopped at the force limit ({record.max_force_n:.2f} N "
-                                f"at {record.reached_depth_mm:.3f} mm): press less deep "
+                raise StepError(f"the target press stopped at the force limit "
+                                f"({record.max_force_n:.2f} N at "
+                                f"{record.reached_depth_mm:.3f} mm): press less deep "
                                 "(camera.press_depth_mm) or raise force_limit_n in the rig "
                                 "config")
             notes.append(f"target pressed by the rig: {record.force_n:.2f} N at "
