@@ -293,3 +293,32 @@ def test_interactive_wizard_through_a_pty(tmp_path):
     state = WorkFolder(tmp_path / "unit7.calibration").load()
     assert list(state.steps) == ["reference", "camera", "presses", "shading", "fem", "plugin"]
     assert any("circle set by hand" in n for n in state.steps["presses"].notes)
+
+
+def test_calibrate_fem_on_a_contacts_csv(tmp_path, sensor):
+    """``calibrate fem --contacts``: the virtual sensor's own depth maps (model grid) and FEM
+    forces at the contacts it reached give back its E; the CSV is checked line by line."""
+    from tactile_deploy.indenters import ContactPose
+
+    rows = ["depth_file,indenter,x_mm,y_mm,depth_mm,force_n"]
+    for i, (x, y, d) in enumerate([(-3.0, 1.0, 0.5), (2.0, -2.0, 0.8), (4.0, 3.0, 0.35)]):
+        out = sensor.press("sphere_r4", ContactPose(x_mm=x, y_mm=y, depth_mm=d), None)
+        np.save(tmp_path / f"d{i}.npy", out.depth_mm)
+        r = out.pose_reached
+        rows.append(f"d{i}.npy,sphere_r4,{r.x_mm},{r.y_mm},{r.depth_mm},{out.force_n}")
+    rows.append("d0.npy,sphere_r4,,,,")            # contact and force unknown: estimated
+    (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "c.csv"),
+                                   "--nu-grid", "0.48", "--bootstrap", "0", "--out",
+                                   str(tmp_path / "fem.json")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "fem.json").read_text())
+    assert doc["n_contacts"] == 4
+    assert doc["E_mpa"] == pytest.approx(sensor.config.material.E_mpa, rel=0.05)
+    (tmp_path / "bad.csv").write_text("depth_file,indenter,x_mm,y_mm,depth_mm,force_n\n"
+                                      "d0.npy,sphere_r4,1,abc,0.5,1\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "bad.csv")])
+    assert res.exit_code == 2 and "bad.csv, line 2: field 'y_mm'" in res.output
+    (tmp_path / "hdr.csv").write_text("file,indenter\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "hdr.csv")])
+    assert res.exit_code == 2 and "header must be depth_file,indenter" in res.output
