@@ -224,7 +224,7 @@ def test_interactive_wizard_through_a_pty(tmp_path):
 
     cfg = tmp_path / "cfg.json"       # fewer frames and presses: the dialogue is under test
     cfg.write_text(json.dumps({**CONFIG, "reference": {"n_frames": 3},
-                               "presses": {"n_presses": 10}, "shading": {"folds": 2}}))
+                               "presses": {"n_presses": 6}, "shading": {"folds": 2}}))
     out = tmp_path / "unit7"
     cmd = [sys.executable, "-m", "tactile_deploy.cli.main", "calibrate", "--sensor", "unit7",
            "--source", f"virtual:{SENSOR}", "--rig", "simulated", "--config", str(cfg),
@@ -322,3 +322,43 @@ def test_calibrate_fem_on_a_contacts_csv(tmp_path, sensor):
     (tmp_path / "hdr.csv").write_text("file,indenter\n")
     res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "hdr.csv")])
     assert res.exit_code == 2 and "header must be depth_file,indenter" in res.output
+
+
+def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sensor):
+    """The hardware path: ``--source clip.npz --rig PORT --gauge PORT``. A simulated rig runs
+    on two pseudo-terminals (as `tactile-deploy rig simulate` would); the frames come from a clip
+    recorded beforehand at the contacts the wizard will command (the crop target: frames taken as
+    rectified). The stage is driven to every planned contact, the gauge's forces are recorded."""
+    from calibration.rig.simulated import HertzForce, SimulatedRig
+    from calibration.wizard.steps import plan_presses
+    from tactile_deploy.indenters import AnalyticSphere, ContactPose
+    from tactile_deploy.runtime.plugins import crop_camera_mapping, validate_plugin
+    from tactile_deploy.runtime.sources.npz import save_clip
+
+    mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)
+    cfg = {**CONFIG, "reference": {"n_frames": 3}, "presses": {"n_presses": 8},
+           "shading": {"folds": 0}, "fem": {"enabled": False},
+           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)}}
+    (tmp_path / "cfg.json").write_text(json.dumps(cfg))
+    grid = crop_camera_mapping(640, 480, mm_per_px, crop).grid
+    plan = plan_presses(grid, 3.0, 8, (0.3, 0.9), 0)
+    frames = [sensor.reference_frame(np.random.default_rng([5, i])) for i in range(4)]
+    for i, (x, y, d) in enumerate(plan):
+        frames.append(sensor.press(AnalyticSphere(3.0), ContactPose(x_mm=x, y_mm=y, depth_mm=d),
+                                   np.random.default_rng([6, i]), truth=False).frame)
+    save_clip(tmp_path / "clip.npz", np.stack(frames), np.arange(len(frames)) * 33_000_000)
+    force = HertzForce(1.3)
+    with SimulatedRig(force) as sim:
+        res = _invoke("--sensor", "bench1", "--source", tmp_path / "clip.npz", "--rig",
+                      sim.stage_port, "--gauge", sim.gauge_port, "--config",
+                      tmp_path / "cfg.json", "--out", tmp_path / "bench1", "--yes")
+        history = np.array(sim.stage.history_mm)
+    assert res.exit_code == 0, res.output
+    assert validate_plugin(tmp_path / "bench1").ok
+    with np.load(tmp_path / "bench1.calibration" / "presses.npz") as z:
+        tips, forces = z["tip_mm"], z["force_n"]
+    np.testing.assert_allclose(tips, plan, atol=0.011)          # M114 reports 0.01 mm
+    np.testing.assert_allclose(forces, [force(d, 0, 0) for d in plan[:, 2]], atol=0.011)
+    for x, y, d in plan:                                        # the stage went to each contact
+        target = sim.frame.sensor_to_stage(x, y, -d)
+        assert np.min(np.linalg.norm(history - target, axis=1)) < 1e-3  # G-code: 4 decimals
