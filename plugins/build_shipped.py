@@ -4,8 +4,9 @@
                                     [--overwrite]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
 
-The calibration wizard will make the same files from a real sensor; until then this script makes
-them from the shipped virtual sensors of the same names (``tactile_deploy.sensors``: the contact
+The calibration wizard (``tactile-deploy calibrate --sensor NEW``, docs/calibration.md) makes the
+same files from a real sensor; this script makes them from the shipped virtual sensors of the same
+names (``tactile_deploy.sensors``: the contact
 FEM of the pad, RGB optics, the unit's effects and noise). What is taken from the virtual sensor
 and what is calibrated:
 

@@ -84,7 +84,12 @@ def test_plugin_is_loaded_by_the_runtime(wizard_run):
     for png in ("reference", "camera", "presses", "shading", "shading_cv", "fem", "plugin"):
         assert (out / "calibration" / f"{png}.png").stat().st_size > 10_000
     metrics = json.loads((out / "calibration" / "metrics.json").read_text())
-    assert metrics["steps"]["presses"]["presses used"] >= 14
+    assert metrics["steps"]["presses"]["presses used"] >= 22
+    # and the main command runs on it: its demo clip (the calibration frames) -> pad meshes
+    res = CliRunner().invoke(app, ["run", "--sensor", str(out), "--source", "demo", "--out",
+                                   str(folder / "run"), "--no-forces", "--format", "ply"])
+    assert res.exit_code == 0, res.output
+    assert len(list((folder / "run").glob("mesh_*.ply"))) == 4 + 24   # 4 rest frames + presses
 
 
 def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
