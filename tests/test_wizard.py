@@ -252,7 +252,7 @@ def test_interactive_wizard_through_a_pty(tmp_path):
     next_prompt(c, "reference")
     c.send("1\r")                                   # accept
     next_prompt(c, "camera")
-    c.send("2\r")                                   # redo the camera step
+    c.send("3\r")                                   # redo the camera step (2: open pictures)
     next_prompt(c, "camera")
     c.send("1\r")
     next_prompt(c, "presses")

@@ -154,6 +154,19 @@ def _prepare_state(work: WorkFolder, sensor: str, source: str, rig: str | None,
     return work.create(state), config
 
 
+def _open_pictures(ui, figures) -> None:
+    """Open the figures in the desktop's image viewer (or say where they are)."""
+    import typer
+
+    for f in figures:
+        try:
+            failed = typer.launch(str(f)) != 0
+        except OSError:
+            failed = True
+        if failed:
+            ui.say(f"could not open {f} here: open it in an image viewer")
+
+
 def _run_step(ctx: Context, step: str, index: int) -> bool:
     """Run one step until the person accepts it (True) or stops (False)."""
     ui = ctx.ui
@@ -174,8 +187,13 @@ def _run_step(ctx: Context, step: str, index: int) -> bool:
                            outcome.notes)
             choices = [("accept", "Accept and go on")]
             choices += [(key, label) for key, label, _ in outcome.actions]
+            if ui.interactive and outcome.figures:
+                choices.append(("view", "Open the pictures"))
             choices += [("redo", "Redo this step"), ("quit", "Stop here (resume later)")]
             pick = ui.choose(f"Step '{step}' done. Next?", choices, "accept")
+            if pick == "view":
+                _open_pictures(ui, outcome.figures)
+                continue
             if pick == "accept":
                 ctx.work.finish(ctx.state, step, outcome.metrics, outcome.figures, outcome.notes)
                 return True
