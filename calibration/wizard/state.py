@@ -35,7 +35,7 @@ STEP_TITLES = {
     "plugin": "plugin folder and calibration report",
 }
 
-Metric = float | int | str
+Metric = float | int | str | None   # None: not measured (NaN is stored as null)
 
 
 class WizardStateError(ValueError):
