@@ -4,8 +4,9 @@
                                     [--overwrite]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
 
-The calibration wizard will make the same files from a real sensor; until then this script makes
-them from the shipped virtual sensors of the same names (``tactile_deploy.sensors``: the contact
+The calibration wizard (``tactile-deploy calibrate --sensor NEW``, docs/calibration.md) makes the
+same files from a real sensor; this script makes them from the shipped virtual sensors of the same
+names (``tactile_deploy.sensors``: the contact
 FEM of the pad, RGB optics, the unit's effects and noise). What is taken from the virtual sensor
 and what is calibrated:
 
@@ -86,60 +87,17 @@ SEEDS = {"gelslim1": 11, "gelslim2": 12}
 
 # ------------------------------------------------------------------------------------ geometry
 def imaging_grid(camera, divisor: int = PITCH_DIVISOR, margin_px: float = 2.0):
-    """The largest axis-aligned box of whole model-grid cells whose corners the camera sees
-    (``margin_px`` inside the image), trimmed to sizes with prime factors 2, 3 and 5 only (the
-    depth integration's sine transforms are ~1.5 x faster), as an OutputGrid at
-    ``model pitch / divisor``."""
-    from tactile_deploy.imaging.camera_mapping import OutputGrid, sensor_mm_to_pixels
+    """See :func:`calibration.camera.imaging_grid.imaging_grid` (shared with the wizard)."""
+    from calibration.camera.imaging_grid import imaging_grid as _imaging_grid
 
-    g = OutputGrid()
-    xs = g.x_min_mm + np.arange(g.nx + 1) * g.pitch_x_mm
-    ys = g.y_max_mm - np.arange(g.ny + 1) * g.pitch_y_mm
-    cx, cy = np.meshgrid(xs, ys)
-    uv = sensor_mm_to_pixels(np.stack([cx.ravel(), cy.ravel()], 1), camera).reshape(*cx.shape, 2)
-    w, h = camera.image_size
-    seen = ((uv[..., 0] >= margin_px) & (uv[..., 0] <= w - 1 - margin_px)
-            & (uv[..., 1] >= margin_px) & (uv[..., 1] <= h - 1 - margin_px))
-    inside = seen[:-1, :-1] & seen[1:, :-1] & seen[:-1, 1:] & seen[1:, 1:]   # (ny, nx) cells
-    rows, cols = np.flatnonzero(inside.any(1)), np.flatnonzero(inside.any(0))
-    r0, r1, c0, c1 = rows[0], rows[-1], cols[0], cols[-1]
-    while not inside[r0:r1 + 1, c0:c1 + 1].all():      # shed the worst side (convex view)
-        bad = {"r0": (~inside[r0, c0:c1 + 1]).sum(), "r1": (~inside[r1, c0:c1 + 1]).sum(),
-               "c0": (~inside[r0:r1 + 1, c0]).sum(), "c1": (~inside[r0:r1 + 1, c1]).sum()}
-        side = max(bad, key=bad.get)
-        r0, r1, c0, c1 = (r0 + (side == "r0"), r1 - (side == "r1"), c0 + (side == "c0"),
-                          c1 - (side == "c1"))
-    # trim to cell counts whose prime factors are 2, 3, 5 (fast sine transforms), centred
-    for lo, hi, axis in (("r0", "r1", 0), ("c0", "c1", 1)):
-        a, b = (r0, r1) if axis == 0 else (c0, c1)
-        n = b - a + 1
-        keep = max(k for k in range(1, n + 1) if _smooth(k * divisor))
-        a += (n - keep) // 2
-        b = a + keep - 1
-        if axis == 0:
-            r0, r1 = a, b
-        else:
-            c0, c1 = a, b
-    return OutputGrid(x_min_mm=float(xs[c0]), x_max_mm=float(xs[c1 + 1]),
-                      y_min_mm=float(ys[r1 + 1]), y_max_mm=float(ys[r0]),
-                      nx=int(c1 - c0 + 1) * divisor, ny=int(r1 - r0 + 1) * divisor)
-
-
-def _smooth(n: int) -> bool:
-    """True when n has no prime factor above 5."""
-    for p in (2, 3, 5):
-        while n % p == 0:
-            n //= p
-    return n == 1
+    return _imaging_grid(camera, divisor, margin_px)
 
 
 def with_grid(camera, grid):
     """The camera mapping with another output grid (validated)."""
-    from tactile_deploy.imaging.camera_mapping import CameraMapping
+    from calibration.camera.imaging_grid import with_grid as _with_grid
 
-    doc = json.loads(camera.model_dump_json())
-    doc["grid"] = grid.model_dump()
-    return CameraMapping.model_validate(doc)
+    return _with_grid(camera, grid)
 
 
 # ------------------------------------------------------------------------------------ presses
