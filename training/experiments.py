@@ -64,6 +64,17 @@ class ExperimentConfig(_Strict):
         return ExperimentConfig.model_validate(json.loads(Path(path).read_text()))
 
 
+class _ImageToMesh(torch.nn.Module):
+    """Normalised depth (N, 1, R, R) -> normalised displacement (N, n, 3): encoder mean, projection, decoder."""
+
+    def __init__(self, encoder, projection, decoder):
+        super().__init__()
+        self.encoder, self.projection, self.decoder = encoder, projection, decoder
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.projection(self.encoder(depth)[0]))
+
+
 class _Runner:
     """Shared data and hierarchy; trains VAEs once per setting and projections per pair."""
 
@@ -154,13 +165,12 @@ class _Runner:
         model = self.model(d_i, d_m)
         model.deploy_decoder = decoder
         dec = model.lean_decoder if decoder == "lean" else model.mesh_vae.decoder
-        net = torch.nn.ModuleDict({"encoder": model.image_vae.encoder, "projection": model.projection, "decoder": dec})
+        net = _ImageToMesh(model.image_vae.encoder, model.projection, dec)
         sets, mask = self.sets, self.mask
 
         def step(m, idx, train):
             t = sets[train]
-            z = m["projection"](m["encoder"](t.depth[idx])[0])
-            mse = torch.mean((m["decoder"](z) * mask - t.disp[idx]) ** 2)
+            mse = torch.mean((m(t.depth[idx]) * mask - t.disp[idx]) ** 2)
             return mse, {"loss": mse.detach(), "mse": mse.detach()}
 
         _, sec = self._stage(f"scratch_{decoder}", "finetune", net, step, self.cfg.scratch, self.scale_mm)

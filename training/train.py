@@ -353,13 +353,13 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     # -- stage 5 (optional): projection + lean decoder end to end, image encoder frozen -------
     s6 = cfg.finetune
     if s6 is not None:
-        joint = torch.nn.ModuleDict({"projection": model.projection, "lean_decoder": model.lean_decoder})
+        joint = torch.nn.Sequential(model.projection, model.lean_decoder)  # z_I -> normalised displacement
         for p in joint.parameters():
             p.requires_grad_(True)
 
         def finetune_step(m, idx, train):
             t = sets[train]
-            pred = m["lean_decoder"](m["projection"](t.z_image[idx])) * mask
+            pred = m(t.z_image[idx]) * mask
             mse = torch.mean((pred - t.disp[idx]) ** 2)
             return mse, {"loss": mse.detach(), "mse": mse.detach()}
 
