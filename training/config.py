@@ -99,6 +99,9 @@ class SyntheticData(_Strict):
     depth_max_mm: float = Field(1.2, gt=0)
     radius_max_mm: float = Field(12.0, ge=0, description="Contacts lie within this radius, mm.")
     nu: float = Field(0.48, ge=0, lt=0.5, description="Poisson ratio of the gel.")
+    friction: Literal["frictionless", "stick"] = Field(
+        "frictionless", description="Contact law of the simulated presses: the gel slides freely, or sticks to the indenter."
+    )
     contact_radius_mm: float | None = Field(
         None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
     )

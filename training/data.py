@@ -136,11 +136,12 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     from tactile_deploy.fem.simulator import ContactSimulator
     from tactile_deploy.indenters import ContactPose, get_indenter
     from tactile_deploy.pad.asset import load_pad
+    from tactile_deploy.fem.contact import ContactSolveError
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
 
     if spec.depth_min_mm > spec.depth_max_mm:
         raise ValueError(f"depth_min_mm={spec.depth_min_mm} exceeds depth_max_mm={spec.depth_max_mm}")
-    material = Material(nu=spec.nu)
+    material = Material(nu=spec.nu, friction=spec.friction)
     pad = load_pad()
     allowed = None
     if spec.contact_radius_mm is None:
@@ -175,7 +176,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 break
             try:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
-            except ContactError:
+            except (ContactError, ContactSolveError):  # off the pad, or a sticking contact the solver gives up on
                 rejected += 1
                 break
             depth[i] = s.depth_mm
@@ -229,7 +230,8 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     # on a GPU the operators are factored there in ~2 s; on a CPU the contact simulator's cache is reused
     operators = "torch" if device.type == "cuda" else "auto"
     sim = BatchedContactSimulator(
-        pad, Material(nu=spec.nu), device, torch.float32, formulation=spec.formulation, operators=operators
+        pad, Material(nu=spec.nu, friction=spec.friction), device, torch.float32, formulation=spec.formulation,
+        operators=operators,
     )
     g = torch.Generator(device="cpu").manual_seed(int(spec.seed) * 1_000_003 + rank)
     n = spec.n_samples
