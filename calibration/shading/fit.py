@@ -101,24 +101,39 @@ def colour_differences(presses: PressSet, inlier_grey: float = 12.0):
     return diffs
 
 
-def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: ShadingFitConfig):
-    """(bin index, target (., 2), column, row) of the contact and far-field samples."""
+def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: ShadingFitConfig,
+                      profiles=None, mm_per_px: float = 1.0):
+    """(bin index, target (., 2), column, row) of the contact, ring and far-field samples.
+
+    Inside ``radii`` the sphere of the ball; where a press has a profile
+    (:class:`~calibration.shading.press_profile.PressProfile`), the ring from there out to
+    ``far_factor`` contact radii gets the profile's slope; beyond it zero gradient.
+    """
     h, w = diffs.shape[1:3]
     far_r, far_c = np.mgrid[0:h:cfg.far_stride, 0:w:cfg.far_stride]
     keys, targets, cs, rs = [], [], [], []
     for i in range(len(diffs)):
         cx, cy, a = circles[i]
         rad = radii[i]
-        r0, r1 = max(int(cy - rad), 0), min(int(cy + rad) + 2, h)
-        c0, c1 = max(int(cx - rad), 0), min(int(cx + rad) + 2, w)
+        prof = None if profiles is None else profiles[i]
+        reach = cfg.far_factor * a if prof is not None else rad
+        r0, r1 = max(int(cy - reach), 0), min(int(cy + reach) + 2, h)
+        c0, c1 = max(int(cx - reach), 0), min(int(cx + reach) + 2, w)
         rows, cols = np.mgrid[r0:r1, c0:c1]
-        m = np.hypot(cols - cx, rows - cy) < rad
+        rho = np.hypot(cols - cx, rows - cy)
+        m = rho < rad
         far = np.hypot(far_c - cx, far_r - cy) > cfg.far_factor * a
-        for r, c, zero in ((rows[m], cols[m], False), (far_r[far], far_c[far], True)):
+        parts = [(rows[m], cols[m], sphere_gradients_at(cols[m], rows[m], (cx, cy),
+                                                        ball_radius_px))]
+        if prof is not None:
+            ring = (rho >= rad) & (rho < reach)
+            parts.append((rows[ring], cols[ring],
+                          prof.image_gradients(cols[ring], rows[ring], (cx, cy), mm_per_px)))
+        parts.append((far_r[far], far_c[far], np.zeros((int(far.sum()), 2))))
+        for r, c, t in parts:
             keys.append(colour_bin_index(diffs[i][r, c], saturated[i][r, c], cfg.bins,
                                          cfg.colour_min, cfg.colour_max))
-            targets.append(np.zeros((len(c), 2)) if zero
-                           else sphere_gradients_at(c, r, (cx, cy), ball_radius_px))
+            targets.append(t)
             cs.append(c)
             rs.append(r)
     return (np.concatenate(keys), np.concatenate(targets), np.concatenate(cs).astype(float),
@@ -287,7 +302,8 @@ def fit_shading(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
     radii = cfg.initial_fraction * circ[:, 2]
     model = None
     for it in range(cfg.radius_iterations + 1):
-        samples = _training_samples(diffs, saturated, circ, radii, r_px, cfg)
+        samples = _training_samples(diffs, saturated, circ, radii, r_px, cfg, presses.profiles,
+                                    mm_per_px)
         model = _build_model(*samples, presses.shape, len(presses), mm_per_px, ball_radius_mm,
                              cfg)
         if it == cfg.radius_iterations:
