@@ -8,7 +8,9 @@ Pipeline (each step a function of this module or of :mod:`.circles`):
    model (:func:`.circles.refine_centres`);
 3. training targets: sphere gradients of the **ball's** radius inside a target region around
    each centre, and zero gradient far from the contact (beyond ``far_factor`` contact radii);
-   the sunken gel in between has no target;
+   the sunken gel in between has no target, unless the presses carry modelled depth profiles
+   (``PressSet.profiles``, e.g. the FEM of the pad: :mod:`.press_profile`), whose slopes it
+   then gets, with a lower weight (``ring_stride``);
 4. the table: the mean target of each colour bin (saturated channels in a bin of their own),
    smoothed over image position with a Gaussian of ``kernel_sigma_mm`` and stored at nodes
    every ``node_spacing_mm``; where a node has few samples of a bin it falls back to the mean
@@ -70,6 +72,7 @@ class ShadingFitConfig:
     centre_iterations: int = 3          # shared-colour-model centre refinement, iterations
     far_factor: float = 3.5             # zero-gradient samples beyond this many contact radii
     far_stride: int = 3                 # subsampling of the far samples, px
+    ring_stride: int = 4                # subsampling of the samples with profile targets, px
     reference_gain: bool = True         # bin colour differences x reference_gain(reference)
     offset_inlier_grey: float = 12.0    # see frame_offset
     poisson_weights_x: tuple[float, ...] = (0.02, 0.035, 0.06, 0.1, 0.18, 0.35, 1.0)
@@ -107,7 +110,9 @@ def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: Sha
 
     Inside ``radii`` the sphere of the ball; where a press has a profile
     (:class:`~calibration.shading.press_profile.PressProfile`), the ring from there out to
-    ``far_factor`` contact radii gets the profile's slope; beyond it zero gradient.
+    ``far_factor`` contact radii gets the profile's slope, one pixel in ``ring_stride`` along
+    each axis (a pixel there weighs 1 / ring_stride^2 of a contact pixel); beyond it zero
+    gradient.
     """
     h, w = diffs.shape[1:3]
     far_r, far_c = np.mgrid[0:h:cfg.far_stride, 0:w:cfg.far_stride]
@@ -126,7 +131,8 @@ def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: Sha
         parts = [(rows[m], cols[m], sphere_gradients_at(cols[m], rows[m], (cx, cy),
                                                         ball_radius_px))]
         if prof is not None:
-            ring = (rho >= rad) & (rho < reach)
+            ring = ((rho >= rad) & (rho < reach)
+                    & (rows % cfg.ring_stride == 0) & (cols % cfg.ring_stride == 0))
             parts.append((rows[ring], cols[ring],
                           prof.image_gradients(cols[ring], rows[ring], (cx, cy), mm_per_px)))
         parts.append((far_r[far], far_c[far], np.zeros((int(far.sum()), 2))))
