@@ -28,7 +28,8 @@ class PressProfile:
 
     r_mm : (n,) float64, distances from the press centre, mm, uniform from 0.
     depth_mm : (n,) float64, depth at r_mm, mm, positive into the gel.
-    contact_radius_mm : FEM contact radius, mm. press_depth_mm : indentation of the ball, mm.
+    contact_radius_mm : where the FEM surface leaves the ball, mm. press_depth_mm : indentation
+        of the ball, mm.
     """
 
     r_mm: np.ndarray
@@ -97,22 +98,14 @@ class BallPressModel:
         from scipy.interpolate import LinearNDInterpolator
 
         depth_nodes, contact = self.solve(x_mm, y_mm, depth_mm)
-        rn = np.hypot(self._xy[:, 0] - x_mm, self._xy[:, 1] - y_mm)
         if not contact.any():
             raise ValueError(f"the ball at ({x_mm:.2f}, {y_mm:.2f}) mm, {depth_mm:.3f} mm deep, "
                              "touches no node of the pad")
-        # contact edge between the farthest node in contact and the nearest one free of it
-        free = ~contact
-        a = 0.5 * (rn[contact].max() + (rn[free & (rn > rn[contact].max())].min()
-                                         if np.any(free & (rn > rn[contact].max()))
-                                         else rn[contact].max()))
-        a = min(a, 0.99 * self.radius_mm)
         r = np.arange(0.0, r_max_mm + step_mm, step_mm)
         ang = np.linspace(0, 2 * math.pi, n_angles, endpoint=False)
         px = x_mm + r[:, None] * np.cos(ang)[None]
         py = y_mm + r[:, None] * np.sin(ang)[None]
-        interp = LinearNDInterpolator(self._xy, depth_nodes)
-        fem = interp(px, py)
+        fem = LinearNDInterpolator(self._xy, depth_nodes)(px, py)
         with np.errstate(invalid="ignore"):
             fem_mean = np.nanmean(np.where(np.isfinite(fem), fem, np.nan), axis=1)
         valid = np.isfinite(fem_mean)
@@ -122,23 +115,25 @@ class BallPressModel:
         # the gel cannot enter the ball (depth >= the ball's); inside the contact the mesh's
         # chords lie above the ball, so the sphere takes over there
         depth = np.maximum(sphere, fem_mean)
-        return PressProfile(r, depth, float(a), float(depth_mm))
+        # contact edge: where the mean FEM surface leaves the ball (continuous in the depth,
+        # unlike the set of contact nodes ~1 mm apart)
+        off = np.flatnonzero((fem_mean > sphere + 1e-6) & (r > 2 * step_mm))
+        a = float(r[off[0]]) if len(off) else float(r[-1])
+        return PressProfile(r, depth, a, float(depth_mm))
 
     def depth_for_contact_radius(self, x_mm: float, y_mm: float, contact_radius_mm: float,
                                  max_depth_mm: float = 1.5) -> float:
-        """The indentation (mm) at which the FEM contact radius (equivalent circle of the
-        contact nodes' areas) reaches ``contact_radius_mm``: for presses whose depth was not
-        measured (by hand)."""
-        areas = self.sim.mesh.sensing_nodal_areas_mm2()
+        """The indentation (mm) whose profile's contact radius (:meth:`profile`) is
+        ``contact_radius_mm``: for presses whose depth was not measured (by hand)."""
 
         def radius(d):
-            _, contact = self.solve(x_mm, y_mm, d)
-            return math.sqrt(areas[contact].sum() / math.pi)
+            return self.profile(x_mm, y_mm, d, 1.5 * contact_radius_mm + 0.5,
+                                n_angles=24).contact_radius_mm
 
         lo, hi = 1e-3, max_depth_mm
         if radius(hi) < contact_radius_mm:
             return hi
-        for _ in range(20):
+        for _ in range(12):
             mid = 0.5 * (lo + hi)
             if radius(mid) < contact_radius_mm:
                 lo = mid
