@@ -246,7 +246,12 @@ def virtual_accuracy(small: bool = False) -> dict:
     from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
     from calibration.wizard.config import wizard_config_from_dict
     from calibration.wizard.state import WorkFolder
-    from calibration.wizard.steps import load_camera, load_reference, press_profiles
+    from calibration.wizard.steps import (
+        load_camera,
+        load_reference,
+        press_profiles,
+        rectifier_for,
+    )
     from calibration.wizard.ui import AutoUI
     from calibration.wizard.wizard import EXIT_OK, run_wizard
     from tactile_deploy.imaging.camera_mapping import OutputGrid
@@ -280,14 +285,20 @@ def virtual_accuracy(small: bool = False) -> dict:
     sensor = load_sensor(VIRTUAL_SENSOR)
     sensor.prepare()
     new = virtual_ball_presses(sensor, camera.grid, *((4, 4) if small else (8, 8)))
-    out = {"presses": int(keep.sum()), "new": new, "errors": {}}
-    for key, prof in (("none", None), ("fem", profiles)):
-        presses.profiles = prof
-        model = fit_shading(presses, config.presses.ball_radius_mm, pitch, fit_cfg).model
-        plain = ImagingPipeline(camera, model, reference, None, "keep")
+    out = {"presses": int(keep.sum()), "new": new, "errors": {},
+           "camera": camera_position_error_mm(camera, sensor.optics.camera)}
+    # the same presses rectified by the virtual camera's own mapping (same imaging grid)
+    exact = sensor.optics.camera.model_copy(update={"grid": camera.grid})
+    rectify = rectifier_for(exact)
+    exact_presses = PressSet(rectify(reference), np.stack([rectify(f) for f in d["raw"][keep]]),
+                             presses.names, presses.circles, profiles)
+    for key, cam, prs, prof in (("none", camera, presses, None), ("fem", camera, presses, profiles),
+                                ("fem, exact camera", exact, exact_presses, profiles)):
+        prs.profiles = prof
+        model = fit_shading(prs, config.presses.ball_radius_mm, pitch, fit_cfg).model
+        plain = ImagingPipeline(cam, model, reference, None, "keep")
         noise = np.mean([plain.frame_to_depth(f) for f in reference_frames], axis=0)
-        pipeline = ImagingPipeline(camera, model, reference, noise.astype(np.float32),
-                                   "subtract")
+        pipeline = ImagingPipeline(cam, model, reference, noise.astype(np.float32), "subtract")
         out["errors"][key] = near_contact_errors([pipeline.frame_to_depth(f)
                                                   for f in new.frames], new)
     # the true gradients on the imaging grid, integrated with the zero border
@@ -302,8 +313,27 @@ def virtual_accuracy(small: bool = False) -> dict:
     return out
 
 
+def camera_position_error_mm(fitted, true) -> dict:
+    """Distance (mm, sensing plane) between where two camera mappings sample the raw frame for
+    each cell of ``fitted``'s imaging grid: mean, mean over the 8 cells next to the grid's edges,
+    max."""
+    import numpy as np
+
+    from tactile_deploy.imaging.camera_mapping import build_remap
+
+    a = np.asarray(build_remap(fitted), np.float64)
+    b = np.asarray(build_remap(true.model_copy(update={"grid": fitted.grid})), np.float64)
+    e = np.hypot(*(a - b)) * fitted.mm_per_px_x
+    band = np.zeros(e.shape, bool)
+    band[:8] = band[-8:] = True
+    band[:, :8] = band[:, -8:] = True
+    return {"mean": float(e.mean()), "edge_band": float(e[band].mean()), "max": float(e.max())}
+
+
 VIRTUAL_NAMES = {"none": "no targets around the contact (before)",
                  "fem": "targets around the contact from the FEM of the pad (the wizard's default)",
+                 "fem, exact camera": "the same, presses rectified by the virtual camera's own "
+                                      "mapping instead of the fitted one",
                  "true gradients": "reference: the true gradients integrated (zero border)"}
 
 
@@ -337,6 +367,10 @@ def virtual_markdown(res: dict) -> str:
             f"{e['near'][inside].max():.1f} | {np.abs(e['peak'][inside]).mean():.0f} | "
             f"{e['whole'][inside].mean():.1f} | {e['near'][edge].mean():.1f} | "
             f"{e['near'][edge].max():.1f} | {np.abs(e['peak'][edge]).mean():.0f} |")
+    cam = res["camera"]
+    lines += ["", f"The fitted camera mapping samples the frame {cam['mean']:.2f} mm from where the "
+              f"virtual camera's does on average over the imaging grid, {cam['edge_band']:.2f} mm "
+              f"in the band of 8 cells along its edges, {cam['max']:.2f} mm at most."]
     fem = res["errors"]["fem"]
     met = fem["near"][inside].mean() <= 20.0
     lines += ["", f"Target: absolute depth RMSE <= 20 um on virtual-sensor presses (within 1.5 "
