@@ -115,7 +115,7 @@ def test_fem_ball_press_profile():
     prof = model.profile(0.0, 0.0, 0.6, 6.0)
     assert prof.depth(0.0) == pytest.approx(0.6, abs=1e-6)
     depth_nodes, contact = model.solve(0.0, 0.0, 0.6)
-    r_nodes = np.hypot(*model._xy.T)
+    r_nodes = np.hypot(*model.node_xy_mm.T)
     out = ~contact & (r_nodes < 5.0)
     # linear interpolation between nodes ~1 mm apart sags below the nodes on the convex part
     resid = prof.depth(r_nodes[out]) - depth_nodes[out]

@@ -64,7 +64,7 @@ class BallPressModel:
     nu : Poisson ratio of the gel (the profile's one material parameter; E drops out).
 
     The pad's surface operators are computed once per (pad, nu) and cached on disk (about 20 s
-    the first time).
+    the first time). node_xy_mm : (n_plane, 2) sensing nodes at rest, sensor frame, mm.
     """
 
     def __init__(self, pad: str, ball_radius_mm: float, nu: float = 0.48):
@@ -80,7 +80,7 @@ class BallPressModel:
         self.sim = ContactSimulator(load_pad(pad), Material(nu=float(nu)))
         self.sim.prepare()
         mesh = self.sim.mesh
-        self._xy = mesh.vertices[mesh.sensing_nodes, :2]
+        self.node_xy_mm = mesh.vertices[mesh.sensing_nodes, :2]
 
     def solve(self, x_mm: float, y_mm: float, depth_mm: float):
         """FEM contact of the ball at (x_mm, y_mm) (sensor frame), pressed ``depth_mm``:
@@ -105,7 +105,7 @@ class BallPressModel:
         ang = np.linspace(0, 2 * math.pi, n_angles, endpoint=False)
         px = x_mm + r[:, None] * np.cos(ang)[None]
         py = y_mm + r[:, None] * np.sin(ang)[None]
-        fem = LinearNDInterpolator(self._xy, depth_nodes)(px, py)
+        fem = LinearNDInterpolator(self.node_xy_mm, depth_nodes)(px, py)
         with np.errstate(invalid="ignore"):
             fem_mean = np.nanmean(np.where(np.isfinite(fem), fem, np.nan), axis=1)
         valid = np.isfinite(fem_mean)
