@@ -96,7 +96,9 @@ def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
     """New presses (places, depths, noise the wizard never saw), through the runtime's imaging
     pipeline of the written plugin, against the surface the frames were shaded from (area
     averaged onto the model grid). Whole-frame RMSE is held to the shading target (20 um); the
-    error near the contact is reported (docs/calibration.md: not met, a known gap)."""
+    error near the contact is reported (docs/calibration.md: 20 um not met, a known gap) and
+    guarded against regression (measured mean 30.5 um with the FEM targets around the contacts,
+    36.1 um without them)."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.runtime.pipeline import GridResampler, ImagingPipeline
@@ -131,7 +133,8 @@ def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
           f"{np.mean(whole):.1f}); within 1.5 contact radii {np.round(near, 1)} (mean "
           f"{np.mean(near):.1f}); peak {np.round(peak, 1)}")
     assert np.mean(whole) <= 20.0
-    assert np.max(near) < 80.0           # a regression guard, not the 20 um target
+    assert np.mean(near) <= 33.0         # regression guards, not the 20 um target
+    assert np.max(near) < 80.0
 
 
 def test_camera_mapping_and_material_match_the_planted_sensor(wizard_run, sensor):

@@ -93,6 +93,9 @@ class PressSettings(BaseModel):
         (0.3, 0.9), description="Depths of the presses (rig; a guide when pressing by hand), "
         "mm. Press at least as deep as the contacts to measure: the shading table only knows "
         "slopes it has seen.")
+    edge_margin: float = Field(
+        1.2, ge=0.3, le=3.0, description="Distance of the press centres from the edges of the "
+        "imaging grid, in contact radii of the deepest press.")
     frames_per_press: int = Field(1, ge=1, description="Frames averaged per press.")
     seed: int = Field(0, ge=0, description="Seed of the press plan (positions, depth order).")
     annotations: str | None = Field(
@@ -122,6 +125,13 @@ class ShadingSettings(BaseModel):
     kernel_sigma_mm: float = Field(1.0, gt=0, description="Position smoothing of the table, mm.")
     folds: int = Field(4, ge=0, description="Cross-validation folds for the figures of merit "
                        "(0: none; otherwise at least 2 and at most the number of presses).")
+    ring_targets: Literal["fem", "none"] = Field(
+        "fem", description="Training targets for the sunken gel around each contact: 'fem' "
+        "(the ball press solved by the FEM of the family's pad at the press's place and depth, "
+        "nu = fem.prior_nu) or 'none' (those pixels get no target).")
+    ring_stride: int = Field(4, ge=1, le=16, description="With ring_targets 'fem': one pixel in "
+                             "this many along each axis takes part (a ring pixel weighs "
+                             "1 / ring_stride^2 of a contact pixel).")
 
 
 class FemSettings(BaseModel):

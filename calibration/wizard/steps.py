@@ -233,13 +233,14 @@ def step_camera(ctx: Context) -> Outcome:
 
 
 # ------------------------------------------------------------------------------------- 3
-def plan_presses(grid, ball_radius_mm: float, n: int, depth_range_mm, seed: int) -> np.ndarray:
+def plan_presses(grid, ball_radius_mm: float, n: int, depth_range_mm, seed: int,
+                 edge_margin: float = 1.2) -> np.ndarray:
     """``n`` contacts (x_mm, y_mm, depth_mm), sensor frame: a jittered lattice over the imaging
-    grid (1.2 contact radii from its edges) so that the presses cover the whole view, depths
-    spread evenly over ``depth_range_mm`` in random order."""
+    grid (centres ``edge_margin`` contact radii of the deepest press from its edges) so that the
+    presses cover the whole view, depths spread evenly over ``depth_range_mm`` in random order."""
     rng = np.random.default_rng([seed, 0x706C616E])
     a_max = math.sqrt(2 * ball_radius_mm * depth_range_mm[1] - depth_range_mm[1] ** 2)
-    m = 1.2 * a_max
+    m = edge_margin * a_max
     x0, x1 = grid.x_min_mm + m, grid.x_max_mm - m
     y0, y1 = grid.y_min_mm + m, grid.y_max_mm - m
     if x1 <= x0 or y1 <= y0:
@@ -279,7 +280,8 @@ def step_presses(ctx: Context) -> Outcome:
     ref, _ = load_reference(ctx.work)
     rect = rectifier_for(camera)
     ref_r = rect(ref)
-    plan = plan_presses(grid, cfg.ball_radius_mm, cfg.n_presses, cfg.depth_range_mm, cfg.seed)
+    plan = plan_presses(grid, cfg.ball_radius_mm, cfg.n_presses, cfg.depth_range_mm, cfg.seed,
+                        cfg.edge_margin)
     ball = Ball(cfg.ball_radius_mm)
     st = ctx.station
     st.mount(ball, ctx.ui)
@@ -423,6 +425,31 @@ def _press_set(ctx: Context):
                     d["circles"][keep]), d
 
 
+def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii: float) -> list:
+    """FEM depth profiles (:class:`~calibration.shading.press_profile.PressProfile`) of the
+    kept presses, out to ``reach_radii`` contact radii: the ball on the family's pad at the rig's
+    contact (sensor frame), or, for hand presses, at the circle's centre and the depth whose FEM
+    contact radius is the circle's."""
+    from calibration.shading.press_profile import BallPressModel
+
+    cfg = config
+    model = BallPressModel(cfg.family, cfg.presses.ball_radius_mm, cfg.fem.prior_nu)
+    g = camera.grid
+    out = []
+    for i in np.flatnonzero(presses_npz["keep"]):
+        col, row, a_px = presses_npz["circles"][i]
+        a_mm = a_px * g.pitch_x_mm
+        tip = presses_npz["tip_mm"][i]
+        if np.all(np.isfinite(tip)):
+            x, y, depth = tip
+        else:
+            x = g.x_min_mm + (col + 0.5) * g.pitch_x_mm
+            y = g.y_max_mm - (row + 0.5) * g.pitch_y_mm
+            depth = model.depth_for_contact_radius(x, y, a_mm)
+        out.append(model.profile(x, y, depth, reach_radii * a_mm + 1.0))
+    return out
+
+
 def step_shading(ctx: Context) -> Outcome:
     """Fit the shading model on the presses; cross-validate it; show depth vs the sphere."""
     from calibration.shading.evaluate import cross_validate, fit_sphere, summarise
@@ -431,12 +458,17 @@ def step_shading(ctx: Context) -> Outcome:
     from tactile_deploy.imaging.shading import DepthFromShading, save_shading
 
     cfg = ctx.config
-    presses, _ = _press_set(ctx)
+    presses, d = _press_set(ctx)
     camera = load_camera(ctx.work)
     pitch = camera.grid.pitch_x_mm
     radius = cfg.presses.ball_radius_mm
     fit_cfg = ShadingFitConfig(bins=cfg.shading.bins, node_spacing_mm=cfg.shading.node_spacing_mm,
-                               kernel_sigma_mm=cfg.shading.kernel_sigma_mm)
+                               kernel_sigma_mm=cfg.shading.kernel_sigma_mm,
+                               ring_stride=cfg.shading.ring_stride)
+    if cfg.shading.ring_targets == "fem":
+        ctx.ui.say("shading: the ball presses solved by the FEM of the pad (targets around the "
+                   "contacts; about 20 s the first time)")
+        presses.profiles = press_profiles(cfg, d, camera, fit_cfg.far_factor)
     try:
         fit = fit_shading(presses, radius, pitch, fit_cfg)
     except ValueError as e:
@@ -444,6 +476,8 @@ def step_shading(ctx: Context) -> Outcome:
     save_shading(fit.model, ctx.work.path("shading.npz"))
     runner = DepthFromShading(fit.model, presses.reference)
     metrics = {"presses": len(presses),
+               "targets around the contacts": ("FEM of the pad" if presses.profiles is not None
+                                               else "none"),
                "in-sample sphere residual (um)": fit.model.header.fit_metrics[
                    "in_sample_sphere_rms_um"],
                "colour model residual (grey)": fit.colour_model_rms_grey,
