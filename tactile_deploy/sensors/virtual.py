@@ -407,8 +407,14 @@ class VirtualSensor:
                           else np.zeros(n_plane, np.float32)),
             metadata=meta, frame=out.frame)
 
-    def _press(self, indenter, pose: ContactPose, rng, truth: bool):
-        """``(SensorFrame, ContactResult or None)`` of one contact (see :meth:`press`)."""
+    def contact_force_n(self, indenter, pose: ContactPose) -> float:
+        """Total normal force (N) of ``indenter`` pressed at ``pose`` (no frame rendered): what a
+        force gauge under the sensor reads. 0 when the indenter does not reach the gel."""
+        return self._solve(indenter, pose)[3]
+
+    def _solve(self, indenter, pose: ContactPose):
+        """The contact of :meth:`press` without the frame: ``(indenter, pose reached,
+        intrusion function, force N, ContactResult or None)``."""
         from tactile_deploy.simulation.contact import ContactError
 
         if isinstance(indenter, str):
@@ -439,19 +445,27 @@ class VirtualSensor:
 
         node_xy = mesh.vertices[mesh.sensing_nodes, :2]
         delta = intrusion(node_xy) + self.rest_height_mm(node_xy)
+        if not np.any(delta > 0):
+            return indenter, reached, intrusion, 0.0, None
+        result = sim.solve_intrusion(delta)
+        for e in self._stage("material"):
+            result = e.correct_contact(sim, delta, result)
+        return indenter, reached, intrusion, float(result.force_n), result
+
+    def _press(self, indenter, pose: ContactPose, rng, truth: bool):
+        """``(SensorFrame, ContactResult or None)`` of one contact (see :meth:`press`)."""
+        indenter, reached, intrusion, _, result = self._solve(indenter, pose)
+        mesh = self.simulator.mesh
         gain = self._gain(rng)
         meta = {"sensor": self.name, "indenter": getattr(indenter, "name", str(indenter)),
                 "pose": pose.model_dump(), "pose_reached": reached.model_dump()}
-        if not np.any(delta > 0):
+        if result is None:
             frame = self.renderer.reference_frame(rng, gain)
             zeros = np.zeros((128, 128), np.float32) if truth else None
             return SensorFrame(frame, zeros, np.zeros((self.renderer.grid.ny,
                                                        self.renderer.grid.nx), np.float32),
                                mesh.vertices.astype(np.float32) if truth else None, 0.0, pose,
                                reached, False, meta), None
-        result = sim.solve_intrusion(delta)
-        for e in self._stage("material"):
-            result = e.correct_contact(sim, delta, result)
         rest = self.renderer.rest_height_mm
         height = self.surface.height(result.vertices_mm, rest, intrusion,
                                      (reached.x_mm, reached.y_mm), indenter.footprint_radius_mm)
