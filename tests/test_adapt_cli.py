@@ -53,6 +53,7 @@ def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
     from tactile_deploy.runtime.predictor import MeshPredictor
 
+    manifest = (plugin_copy / "plugin.json").read_bytes()
     res = _adapt(plugin_copy, "--steps", "6")
     assert res.exit_code == 0, res.output
     assert "held-out label-free RMSE" in res.output and "new version 1" in res.output, res.output
@@ -62,7 +63,8 @@ def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
     assert report["parity_fp32_onnx_vs_step_max_abs_diff_mm"] <= 1e-4
     assert (plugin_copy / "adapted" / "v1" / "adaptation.png").stat().st_size > 10_000
     plugin = SensorPlugin.load(plugin_copy)
-    assert plugin.manifest.adapted_model.path == "adapted/v1/model.onnx"
+    assert (plugin_copy / "plugin.json").read_bytes() == manifest  # the plugin's own files stay as shipped
+    assert plugin.adapted_model_path() == (plugin_copy / "adapted" / "v1" / "model.onnx").resolve()
     assert validate_plugin(plugin_copy).ok
     predictor = MeshPredictor.from_plugin(plugin_copy)
     assert predictor.model_path == (plugin_copy / "adapted" / "v1" / "model.onnx").resolve()
@@ -72,8 +74,9 @@ def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
     assert run.exit_code == 0, run.output
     assert json.loads((tmp_path / "run" / "run.json").read_text())["frames"] == 5
     back = CliRunner().invoke(app, ["adapt", "--sensor", str(plugin_copy), "--rollback"])
-    assert back.exit_code == 0 and "the family model" in back.output
-    assert SensorPlugin.load(plugin_copy).manifest.adapted_model is None
+    assert back.exit_code == 0 and "the plugin's own model" in back.output
+    assert SensorPlugin.load(plugin_copy).adapted_model_path() is None
+    assert MeshPredictor.from_plugin(plugin_copy).model_path == (ROOT / "exported" / "gelslim_mesh.onnx").resolve()
     assert (plugin_copy / "adapted" / "v1" / "model.onnx").is_file()  # kept
 
 

@@ -176,6 +176,7 @@ def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
     plugin = SensorPlugin.load(tiny_plugin)
+    manifest = (tiny_plugin / "plugin.json").read_bytes()
     record = {"created": "2026-01-01T00:00:00+00:00", "heldout_rmse_before_mm": 0.2, "heldout_rmse_after_mm": 0.1,
               "summary": "test"}
     for k in range(2):
@@ -189,17 +190,46 @@ def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
     shutil.copy(tiny["onnx"], stage / "model.onnx")
     assert add_version(plugin, stage, record).version == 4
     plugin = SensorPlugin.load(tiny_plugin)
-    assert plugin.manifest.adapted_model.path == "adapted/v4/model.onnx"
+    assert (tiny_plugin / "plugin.json").read_bytes() == manifest  # never rewritten
+
+    def active():
+        path = SensorPlugin.load(tiny_plugin).adapted_model_path()
+        return None if path is None else path.relative_to(tiny_plugin.resolve()).as_posix()
+
+    assert active() == "adapted/v4/model.onnx"
     assert validate_plugin(tiny_plugin).ok
     assert rollback(plugin) == (4, 2)
-    assert SensorPlugin.load(tiny_plugin).manifest.adapted_model.path == "adapted/v2/model.onnx"
+    assert active() == "adapted/v2/model.onnx"
     assert rollback(plugin) == (2, 1)
     assert rollback(plugin) == (1, None)
-    assert SensorPlugin.load(tiny_plugin).manifest.adapted_model is None
+    assert active() is None
     with pytest.raises(ValueError, match="no earlier adapted version"):
         rollback(plugin)
     assert [v.version for v in load_history(plugin).versions] == [1, 2, 4]
     assert all((tiny_plugin / "adapted" / f"v{k}" / "model.onnx").is_file() for k in (1, 2, 4))
+
+
+def test_a_version_of_another_family_model_is_not_used_and_a_changed_one_is_refused(tiny, tiny_plugin):
+    from tactile_deploy.adapt.versions import add_version, history_path, staging_folder
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+
+    plugin = SensorPlugin.load(tiny_plugin)
+    stage = staging_folder(plugin)
+    shutil.copy(tiny["onnx"], stage / "model.onnx")
+    add_version(plugin, stage, {"created": "2026-01-01T00:00:00+00:00", "heldout_rmse_before_mm": 0.2,
+                                "heldout_rmse_after_mm": 0.1, "summary": "test"})
+    assert SensorPlugin.load(tiny_plugin).adapted_model_path() is not None
+    doc = json.loads(history_path(plugin).read_text())
+    doc["versions"][0]["family_model_sha256"] = "0" * 64  # as after the family model was replaced
+    history_path(plugin).write_text(json.dumps(doc))
+    assert SensorPlugin.load(tiny_plugin).adapted_model_path() is None
+    assert SensorPlugin.load(tiny_plugin).model_path() == tiny["onnx"].resolve()
+    doc["versions"][0]["family_model_sha256"] = plugin.manifest.model.sha256
+    history_path(plugin).write_text(json.dumps(doc))
+    with open(tiny_plugin / "adapted" / "v1" / "model.onnx", "ab") as f:
+        f.write(b"x")
+    with pytest.raises(PluginError, match="--rollback"):
+        SensorPlugin.load(tiny_plugin).model_path()
 
 
 def test_split_keeps_blocks_of_consecutive_frames_together():

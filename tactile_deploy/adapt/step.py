@@ -34,7 +34,7 @@ def require_torch():
 
 
 def _verified(card: AdaptationCard, folder: Path, key: str) -> Path:
-    from tactile_deploy.runtime.plugins import file_sha256
+    from tactile_deploy.checksums import file_sha256
 
     path = card.path(folder, key)
     if not path.is_file():
@@ -88,7 +88,7 @@ class StepProgram:
 
     def check_family_model(self, model_path: str | Path) -> None:
         """Refuse a family model other than the one the step was exported with."""
-        from tactile_deploy.runtime.plugins import file_sha256
+        from tactile_deploy.checksums import file_sha256
 
         actual = file_sha256(model_path)
         expected = self.card.files["family_model"].sha256
@@ -127,10 +127,13 @@ class StepProgram:
     # -- the filter ----------------------------------------------------------------------------
     def filter_session(self):
         if self._filter is None:
-            from tactile_deploy.runtime.predictor import make_session
+            import onnxruntime as ort
 
             path = _verified(self.card, self.folder, "filter")
-            self._filter = make_session(path, threads=1, providers="cpu")
+            so = ort.SessionOptions()
+            so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
+            so.log_severity_level = 3
+            self._filter = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
         return self._filter
 
 

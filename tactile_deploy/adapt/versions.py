@@ -9,11 +9,14 @@ Layout inside the plugin folder::
       v1/adaptation.png   figure
       v2/...
 
-The manifest's ``adapted_model`` names the active version's ``model.onnx`` (with its sha256), so
-``tactile-deploy run`` uses it; ``null`` = the family model. A version is written into a hidden
-temporary folder and renamed into place, then ``history.json`` and ``plugin.json`` are replaced
-atomically, in that order: an interruption leaves the plugin on its previous model. Versions are
-never deleted; :func:`rollback` makes the previous one (or the family model) active again.
+``history.json`` names the active version (with its model's sha256 and the sha256 of the family
+model it was adapted from); ``tactile-deploy run`` uses it (:meth:`SensorPlugin.model_path
+<tactile_deploy.runtime.plugins.SensorPlugin.model_path>`), ``active: null`` = the plugin's own
+model. ``plugin.json`` and every other file the plugin shipped with are never written: a shipped
+plugin stays as shipped, and ``adapted/`` is the only thing added. A version is written into a
+hidden temporary folder and renamed into place, then ``history.json`` is replaced atomically: an
+interruption leaves the plugin on its previous model. Versions are never deleted;
+:func:`rollback` makes the previous one (or the plugin's own model) active again.
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ class VersionRecord(BaseModel):
 
     version: int = Field(ge=1)
     model: str = Field(description="Model path relative to the plugin folder.")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the model file.")
+    family_model_sha256: str = Field(pattern=r"^[0-9a-f]{64}$",
+                                     description="sha256 of the plugin's family model it was adapted from.")
     created: str = Field(description="ISO date and time (UTC).")
     heldout_rmse_before_mm: float = Field(description="Label-free RMSE on the held-out frames, family/previous model.")
     heldout_rmse_after_mm: float = Field(description="The same after adaptation.")
@@ -50,7 +56,7 @@ class AdaptationHistory(BaseModel):
 
     format_version: int = 1
     versions: list[VersionRecord] = Field(default_factory=list)
-    active: int | None = Field(None, description="Active version, or None: the family model.")
+    active: int | None = Field(None, description="Active version, or None: the plugin's own model.")
     previous: list[int | None] = Field(default_factory=list, description="Stack of earlier active versions (rollback).")
 
 
@@ -65,15 +71,31 @@ def load_history(plugin) -> AdaptationHistory:
     return AdaptationHistory.model_validate(json.loads(path.read_text(encoding="utf-8")))
 
 
-def _set_manifest_model(plugin, model_rel: str | None) -> None:
-    """Point the manifest's ``adapted_model`` at ``model_rel`` (None: the family model)."""
-    from tactile_deploy.runtime.plugins import MANIFEST_NAME, PluginManifest, file_sha256
+def check_writable(plugin) -> None:
+    """Refuse early, with what to do, when versions cannot be written into the plugin folder."""
+    folder = Path(plugin.folder)
+    root = folder / ADAPTED_DIR
+    probe = root if root.is_dir() else folder
+    if not os.access(probe, os.W_OK):
+        raise PermissionError(
+            f"cannot write adapted versions into {probe} (read-only); copy the plugin folder to a writable "
+            f"place and put that place on $TACTILE_DEPLOY_PLUGIN_PATH (it then shadows this one), or pass "
+            "--dry-run to measure only")
 
-    path = Path(plugin.folder) / MANIFEST_NAME
-    doc = json.loads(path.read_text(encoding="utf-8"))
-    doc["adapted_model"] = None if model_rel is None else {
-        "path": model_rel, "sha256": file_sha256(Path(plugin.folder) / model_rel)}
-    write_json(path, PluginManifest.model_validate(doc).model_dump(mode="json"))
+
+def active_version(folder: str | Path) -> VersionRecord | None:
+    """The active version recorded in ``folder/adapted/history.json``, or None."""
+    path = Path(folder) / ADAPTED_DIR / HISTORY_FILE
+    if not path.is_file():
+        return None
+    try:
+        history = AdaptationHistory.model_validate(json.loads(path.read_text(encoding="utf-8")))
+    except (ValueError, OSError) as e:
+        raise ValueError(f"{path}: not a valid adaptation history ({e}); restore it from a backup, or move it "
+                         "away to run the plugin's own model") from None
+    if history.active is None:
+        return None
+    return next(v for v in history.versions if v.version == history.active)
 
 
 def add_version(plugin, staging: Path, record: dict) -> VersionRecord:
@@ -89,11 +111,13 @@ def add_version(plugin, staging: Path, record: dict) -> VersionRecord:
         raise FileNotFoundError(f"{staging} holds no {MODEL_FILE}")
     target = root / f"v{n}"
     os.replace(staging, target)
-    rec = VersionRecord(version=n, model=f"{ADAPTED_DIR}/v{n}/{MODEL_FILE}", **record)
+    from tactile_deploy.runtime.plugins import file_sha256
+
+    rec = VersionRecord(version=n, model=f"{ADAPTED_DIR}/v{n}/{MODEL_FILE}", sha256=file_sha256(target / MODEL_FILE),
+                        family_model_sha256=plugin.manifest.model.sha256, **record)
     history = AdaptationHistory(versions=[*history.versions, rec], active=n,
                                 previous=[*history.previous, history.active])
     write_json(history_path(plugin), history.model_dump(mode="json"))
-    _set_manifest_model(plugin, rec.model)
     return rec
 
 
@@ -109,11 +133,11 @@ def staging_folder(plugin) -> Path:
 
 
 def rollback(plugin) -> tuple[int | None, int | None]:
-    """Make the previously active version (or the family model) active again; returns
-    ``(from_version, to_version)`` (None = the family model). The files stay."""
+    """Make the previously active version (or the plugin's own model) active again; returns
+    ``(from_version, to_version)`` (None = the plugin's own model). The files stay."""
     history = load_history(plugin)
     if history.active is None and not history.previous:
-        raise ValueError(f"plugin {plugin.name!r} runs its family model and has no earlier adapted version to "
+        raise ValueError(f"plugin {plugin.name!r} runs its own model and has no earlier adapted version to "
                          "roll back to")
     to = history.previous[-1] if history.previous else None
     by_version = {v.version: v for v in history.versions}
@@ -122,5 +146,4 @@ def rollback(plugin) -> tuple[int | None, int | None]:
                                 f"{by_version[to].model}; restore it or adapt again")
     new = AdaptationHistory(versions=history.versions, active=to, previous=history.previous[:-1])
     write_json(history_path(plugin), new.model_dump(mode="json"))
-    _set_manifest_model(plugin, None if to is None else by_version[to].model)
     return history.active, to

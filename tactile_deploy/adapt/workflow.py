@@ -9,7 +9,8 @@ Data flow of :func:`adapt_plugin` (``tactile-deploy adapt``)::
       -> held-out label-free RMSE before -> Adam steps (progress, live loss) -> held-out RMSE after
       -> improved? adapted ONNX (fp32 graph with new initializers; int8 like the family model),
          parity with the step program, before/after figure, report
-         -> plugin version adapted/v<n>, manifest switched to it (atomic; tactile_deploy.adapt.versions)
+         -> plugin version adapted/v<n>, made active in adapted/history.json (atomic; plugin.json untouched;
+            tactile_deploy.adapt.versions)
 
 The label-free RMSE (mm) is the paper's metric: RMS over the held-out maps and the pixels the
 sensor sees of rendered mesh minus target.
@@ -136,20 +137,22 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
                  progress: Callable[[int, float], None] | None = None, log: Callable[[str], None] = print,
                  source: dict | None = None) -> AdaptResult:
     """Adapt ``plugin``'s model on ``depth_mm`` (N, 128, 128) mm (module docstring)."""
-    from tactile_deploy.adapt.versions import add_version, staging_folder
+    from tactile_deploy.adapt.versions import add_version, check_writable, staging_folder
     from tactile_deploy.adapt.weights import read_adapted_weights
 
     t_start = time.perf_counter()
+    if options.write:
+        check_writable(plugin)
     folder = Path(step_folder) if step_folder is not None else default_step_folder(plugin)
     step = StepProgram.load(folder, options.device)
     step.check_family_model(plugin.verified_path("model"))
     card = step.card
     start_model = "family model"
-    if options.start == "active" and plugin.manifest.adapted_model is not None:
-        active = plugin.verified_path("adapted_model")
+    active = plugin.adapted_model_path() if options.start == "active" else None
+    if active is not None:
         fp32 = active.with_name("model_fp32.onnx")
         step.load_weights(read_adapted_weights(card, fp32 if fp32.is_file() else active))
-        start_model = f"adapted model {Path(plugin.manifest.adapted_model.path).parent.name}"
+        start_model = f"adapted model {active.parent.name}"
     weight = view_weight(plugin)
     depth = np.asarray(depth_mm, np.float32)
     target = vae_filter(step, depth) if options.use_filter else depth.copy()

@@ -31,11 +31,12 @@ def adapt_command(
     seed: int = typer.Option(0, "--seed", help="Seed of the held-out split and the batch order."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: torch's)."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Measure only: write nothing to the plugin."),
-    rollback: bool = typer.Option(False, "--rollback", help="Make the previous adapted version (or the family "
-                                  "model) active again, and stop."),
+    rollback: bool = typer.Option(False, "--rollback", help="Make the previous adapted version (or the plugin's "
+                                  "own model) active again, and stop."),
 ) -> None:
     """Adapt a plugin's model to its sensor from unlabelled frames (self-supervised); writes a new
-    version into the plugin only when the held-out error improves."""
+    version into the plugin's adapted/ folder only when the held-out error improves (the plugin's
+    own files are never changed)."""
     from tactile_deploy.adapt.card import CardError
     from tactile_deploy.adapt.weights import AdaptationUnavailable
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
@@ -51,9 +52,9 @@ def adapt_command(
 
         try:
             was, now = do_rollback(plugin)
-        except (ValueError, FileNotFoundError) as e:
+        except (ValueError, FileNotFoundError, PermissionError) as e:
             fail(str(e))
-        name = {None: "the family model"}
+        name = {None: "the plugin's own model"}
         console.print(f"{plugin.name}: {name.get(was, f'version {was}')} -> {name.get(now, f'version {now}')} "
                       f"(active now; all versions kept in {plugin.folder / 'adapted'})")
         return
@@ -87,7 +88,7 @@ def adapt_command(
             result = adapt_plugin(plugin, depth, options, step_dir, progress=progress, log=err_console.print,
                                   source=info)
     except (PluginError, CardError, AdaptationUnavailable, SourceSpecError, SourceError, ValueError,
-            FileNotFoundError, RuntimeError) as e:
+            FileNotFoundError, PermissionError, RuntimeError) as e:
         fail(str(e))
     for line in summary_lines(result):
         console.print(line)

@@ -43,10 +43,19 @@ WORK = ROOT / "out" / "adapt"
 
 def export_model(run: Path, out: Path, log=print) -> tuple[Path, Path]:
     """Shipped ONNX graph (+ fp32 twin, card) and adaptation step of a training run, into
-    ``out``; reused when present. Returns (onnx, step folder)."""
+    ``out``; reused when present. A bundle ``NAME.pt`` with ``NAME.onnx`` and its step
+    ``NAME_adapt/`` beside it (``exported/gelslim_mesh.pt``) is used as it is. Returns (onnx, step folder)."""
     from training.adaptation.export import export_step
     from training.export import export_run
 
+    if run.suffix == ".pt":
+        onnx, step = run.with_suffix(".onnx"), run.with_name(run.stem + "_adapt")
+        if not (onnx.is_file() and (step / "card.json").is_file()):
+            raise FileNotFoundError(f"{run}: {onnx} or {step}/card.json is missing; export them (python -m training "
+                                    f"export-adapt --bundle {run} --onnx {onnx})")
+        return onnx, step
+    if (run / "gelslim_mesh.onnx").is_file() and (run / "gelslim_mesh_adapt" / "card.json").is_file():
+        return run / "gelslim_mesh.onnx", run / "gelslim_mesh_adapt"
     out.mkdir(parents=True, exist_ok=True)
     onnx = out / "gelslim_mesh.onnx"
     step = out / "gelslim_mesh_adapt"
@@ -130,8 +139,10 @@ def tune_lr(model: Model, domain: Domain, lrs: list[float], steps: int, n_valid:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clean", type=Path, required=True, help="training run without augmentation")
-    ap.add_argument("--aug", type=Path, required=True, help="training run with augmentation")
+    ap.add_argument("--clean", type=Path, default=ROOT / "exported" / "gelslim_mesh.pt",
+                    help="model trained without augmentation: a training run, or a bundle with its ONNX model and "
+                    "step beside it (default: the shipped model)")
+    ap.add_argument("--aug", type=Path, required=True, help="its augmented twin (a run folder)")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--n-adapt", type=int, default=200)
@@ -142,7 +153,10 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--tune-lr", type=float, nargs="+", default=None,
                     help="only choose the learning rate (label-free, on gelslim1's adaptation maps) and stop")
-    ap.add_argument("--tune-model", choices=["clean", "aug"], default="aug")
+    ap.add_argument("--tune-model", choices=["clean", "aug"], default="clean")
+    ap.add_argument("--transfer", choices=["clean", "aug"], default="clean",
+                    help="model of Table 2b (default: the clean one, i.e. the shipped model)")
+    ap.add_argument("--batch", type=int, default=16)
     args = ap.parse_args(argv)
     import torch
 
@@ -176,7 +190,8 @@ def main(argv=None) -> int:
         entry = {"model": model_key, "domain": domain_key, "before": before}
         weights = start
         if adapt_on is not None:
-            weights, info = run_adaptation(model, adapt_on, start, args.steps, use_filter, args.lr, seed=args.seed)
+            weights, info = run_adaptation(model, adapt_on, start, args.steps, use_filter, args.lr, args.batch,
+                                           seed=args.seed)
             entry["after"] = measure(model, eval_d, weights)
             entry["adaptation"] = info
         results["rows"][name] = entry
@@ -184,16 +199,19 @@ def main(argv=None) -> int:
         return weights
 
     aug, clean = models["aug"].family, models["clean"].family
+    m = args.transfer  # the model of Table 2b
+    start = models[m].family
     row("sim-prim (aug)", "aug", "sim", aug)
     row("sim-prim (clean)", "clean", "sim", clean)
-    g1 = row("aug: sim -> gelslim1", "aug", "gelslim1", aug, split["gelslim1"][0])
-    row("clean: sim -> gelslim1", "clean", "gelslim1", clean, split["gelslim1"][0])
+    g1 = {}
+    for key in ("aug", "clean"):
+        g1[key] = row(f"{key}: sim -> gelslim1", key, "gelslim1", models[key].family, split["gelslim1"][0])
     row("aug, no filter: sim -> gelslim1", "aug", "gelslim1", aug, split["gelslim1"][0], use_filter=False)
-    row("aug: sim -> gelslim2", "aug", "gelslim2", aug, split["gelslim2"][0])
-    row("aug: gelslim1 -> gelslim2", "aug", "gelslim2", g1, split["gelslim2"][0])
-    row("aug: gelslim1 -> gelslim1-novel", "aug", "gelslim1-novel", g1, split["gelslim1-novel"][0])
-    row("aug: sim -> gelslim1-novel", "aug", "gelslim1-novel", aug, split["gelslim1-novel"][0])
-    row("aug: sim -> real-balls", "aug", "real-balls", aug, split["real-balls"][0])
+    row(f"{m}: sim -> gelslim2", m, "gelslim2", start, split["gelslim2"][0])
+    row(f"{m}: gelslim1 -> gelslim2", m, "gelslim2", g1[m], split["gelslim2"][0])
+    row(f"{m}: gelslim1 -> gelslim1-novel", m, "gelslim1-novel", g1[m], split["gelslim1-novel"][0])
+    row(f"{m}: sim -> gelslim1-novel", m, "gelslim1-novel", start, split["gelslim1-novel"][0])
+    row(f"{m}: sim -> real-balls", m, "real-balls", start, split["real-balls"][0])
     results["seconds"] = time.perf_counter() - t0
     from tactile_deploy.atomic import write_json
 
@@ -225,7 +243,7 @@ def tables_markdown(results: dict) -> str:
 
     lines = [
         f"Models: clean `{s['clean']}`, augmented `{s['aug']}` (docs/adaptation.md says how they were trained). "
-        f"Adaptation: {s['steps']} Adam steps, lr {s['lr']:g}, batch 16, on {s['n_adapt']} maps of the target "
+        f"Adaptation: {s['steps']} Adam steps, lr {s['lr']:g}, batch {s.get('batch', 16)}, on {s['n_adapt']} maps of the target "
         f"domain; figures on {s['n_eval']} maps of other presses (real balls: 30 / 12). um; "
         "LF = label-free RMSE (rendered mesh vs the model's VAE(I), the paper's metric), "
         "D = rendered mesh vs the true clean depth map, V = vertex RMSE vs the true FEM mesh (all nodes).",
@@ -247,19 +265,21 @@ def tables_markdown(results: dict) -> str:
                      f"{_um(fig(name, when, 'depth_vs_truth_rmse_mm'))} | {_um(fig(name, when, 'vertex_rmse_mm'))} |")
     lines += [
         "",
-        "**Table 2b** (augmented model; before -> after adaptation)",
+        f"**Table 2b** ({'clean' if s.get('transfer', 'aug') == 'clean' else 'augmented'} model `{s[s.get('transfer', 'aug')]}`; "
+        "before -> after adaptation)",
         "",
         "| source -> target | LF | ratio | D | V | ratio V |",
         "|---|---|---|---|---|---|",
     ]
+    m = s.get("transfer", "aug")
     transfers = [
-        ("Sim-Prim (held-out simulation, no adaptation)", "sim-prim (aug)"),
-        ("Sim-Prim -> Real-Prim (gelslim1)", "aug: sim -> gelslim1"),
-        ("Sim-Prim -> Real-Prim-2 (gelslim2)", "aug: sim -> gelslim2"),
-        ("Real-Prim -> Real-Prim-2", "aug: gelslim1 -> gelslim2"),
-        ("Real-Prim -> Real-Novel (STL indenters, gelslim1)", "aug: gelslim1 -> gelslim1-novel"),
-        ("Sim-Prim -> Real-Novel", "aug: sim -> gelslim1-novel"),
-        ("Sim-Prim -> real ball presses (GelSight)", "aug: sim -> real-balls"),
+        ("Sim-Prim (held-out simulation, no adaptation)", f"sim-prim ({m})"),
+        ("Sim-Prim -> Real-Prim (gelslim1)", f"{m}: sim -> gelslim1"),
+        ("Sim-Prim -> Real-Prim-2 (gelslim2)", f"{m}: sim -> gelslim2"),
+        ("Real-Prim -> Real-Prim-2", f"{m}: gelslim1 -> gelslim2"),
+        ("Real-Prim -> Real-Novel (STL indenters, gelslim1)", f"{m}: gelslim1 -> gelslim1-novel"),
+        ("Sim-Prim -> Real-Novel", f"{m}: sim -> gelslim1-novel"),
+        ("Sim-Prim -> real ball presses (GelSight)", f"{m}: sim -> real-balls"),
     ]
     for label, name in transfers:
         b, a = rows[name]["before"], rows[name].get("after")
