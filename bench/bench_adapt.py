@@ -20,8 +20,10 @@ Measures, in one run:
   ``--steps`` steps, evaluation, adapted ONNX (int8 like the family model), version written;
   wall time against the target of 2 minutes on a 2-core CPU.
 
-Results go to BENCHMARKS.md (section ``adapt``) unless ``--no-write``; CUDA figures are written
-to their own section (``adapt-cuda``).
+Results go to BENCHMARKS.md (section ``adapt``) unless ``--no-write``, with the CUDA results
+committed as ``bench/results/adapt_cuda_*.json`` (made on a GPU machine by
+``bench/bench_adapt_device.py``, which needs only torch, numpy, onnx, onnxruntime and pydantic);
+a run of this script with ``--device cuda`` writes its own section (``adapt-cuda``).
 """
 
 from __future__ import annotations
@@ -232,6 +234,7 @@ def main(argv=None) -> int:
         f"Held-out label-free RMSE in that run: {result.before.rmse_mm * 1e3:.1f} -> {result.after.rmse_mm * 1e3:.1f} um"
         f" ({'version written' if result.version else 'no improvement, nothing written'}).",
     ]
+    lines += ["", *cuda_lines(step_med, b)]
     md = "\n".join(lines)
     print(md)
     if not args.no_write:
@@ -241,6 +244,30 @@ def main(argv=None) -> int:
         title = "## On-device adaptation (`tactile-deploy bench adapt" + ("" if args.device == "cpu" else f" --device {args.device}") + "`)"
         write_section(name, f"{title}\n\n{machine_line()}\n\n{md}")
     return 0
+
+
+def cuda_lines(cpu_step_s: float, batch: int) -> list[str]:
+    """The committed CUDA results (``bench/results/adapt_cuda_*.json``, written on a GPU machine by
+    ``bench/bench_adapt_device.py``) as a table, against this run's CPU step."""
+    import json
+
+    files = sorted((ROOT / "bench" / "results").glob("adapt_cuda_*.json"))
+    if not files:
+        return ["CUDA: not measured yet. On a GPU machine (torch, numpy, onnx, onnxruntime, pydantic suffice): "
+                "`python bench/bench_adapt_device.py --device cuda --out bench/results/adapt_cuda_<gpu>.json`, "
+                "commit the JSON, run this benchmark again."]
+    out = ["CUDA (`bench/bench_adapt_device.py --device cuda`, committed results; synthetic presses, same step "
+           "program; the CPU column is this run's step):", "",
+           "| GPU | result file | Adam step (batch) | steps/s | vs this CPU | adapt: frames, steps, total |",
+           "|---|---|---|---|---|---|"]
+    for f in files:
+        r = json.loads(f.read_text())
+        st, ad = r["step"], r["adapt"]
+        same = " (same batch)" if r["batch"] == batch else f" (CPU at batch {batch})"
+        out.append(f"| {r['device_name']} | `{f.relative_to(ROOT)}` | {st['median_s'] * 1e3:.1f} ms ({r['batch']}) | "
+                   f"**{st['steps_per_s']:.1f}** | {cpu_step_s / st['median_s']:.1f}x{same} | "
+                   f"{ad['frames']}, {ad['steps']}, {ad['total_s']:.1f} s |")
+    return out
 
 
 def _relink(folder: Path, model: Path) -> None:

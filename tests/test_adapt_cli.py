@@ -104,6 +104,55 @@ def test_without_torch_the_message_says_what_to_install(plugin_copy):
     assert "pip install 'tactile-deploy[adapt]'" in res.stderr
 
 
+def test_the_committed_step_belongs_to_the_shipped_model():
+    """The committed step was exported from the shipped bundle for the shipped ONNX model (sha256
+    of both), every trainable tensor has its initializer in the shipped fp32 graph, and the
+    program's meshes equal the shipped fp32 graph's (onnxruntime) on virtual-sensor-like maps."""
+    import numpy as np
+
+    from tactile_deploy.adapt.step import StepProgram
+    from tactile_deploy.checksums import file_sha256
+    from tactile_deploy.runtime.predictor import make_session
+
+    step = StepProgram.load(STEP)
+    card = step.card
+    for key, path in (("family_model", "gelslim_mesh.onnx"), ("fp32_model", "gelslim_mesh_fp32.onnx"),
+                      ("source_bundle", "gelslim_mesh.pt")):
+        assert card.path(STEP, key) == (ROOT / "exported" / path).resolve()
+        assert card.files[key].sha256 == file_sha256(ROOT / "exported" / path), key
+    assert sorted(m.parameter for m in card.parameter_map) == sorted(card.trainable)
+    assert len({m.initializer for m in card.parameter_map}) == len(card.trainable)
+    c = -17.5 + (np.arange(128) + 0.5) * 35 / 128
+    x, y = np.meshgrid(c, -c)
+    depth = np.stack([a * np.exp(-((x - u) ** 2 + (y - v) ** 2) / (2 * r * r)) for a, u, v, r in
+                      ((0.8, 2.0, -3.0, 3.0), (0.4, -6.0, 4.0, 2.0), (1.1, 0.0, 0.0, 4.5))]).astype(np.float32)
+    disp = step(depth, np.zeros_like(depth), np.ones((128, 128), np.float32))[3].detach().numpy()
+    onnx_disp = make_session(card.path(STEP, "fp32_model"), providers="cpu").run(
+        ["displacement"], {"depth": depth[:, None]})[0]
+    assert np.abs(disp).max() > 0.1  # the maps move the mesh ...
+    assert np.abs(disp - onnx_disp).max() < 1e-4  # ... as the shipped graph does
+
+
+def test_device_benchmark_runs_with_only_torch_numpy_onnx_onnxruntime_pydantic(tmp_path):
+    """bench/bench_adapt_device.py (the GPU machine's script) in a process where every other
+    library of the project cannot be imported."""
+    blocked = ["trimesh", "warp", "cv2", "typer", "rich", "questionary", "matplotlib", "meshio", "zmq", "serial",
+               "pexpect", "training", "scipy"]
+    script = textwrap.dedent(f"""
+        import runpy, sys
+        for m in {blocked!r}:
+            sys.modules[m] = None
+        sys.argv = ["bench_adapt_device.py", "--device", "cpu", "--out", {str(tmp_path / "r.json")!r},
+                    "--steps", "2", "--repeat", "1", "--frames", "10", "--batch", "4"]
+        runpy.run_path({str(ROOT / "bench" / "bench_adapt_device.py")!r}, run_name="__main__")
+        """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert result["device"] == "cpu" and result["batch"] == 4 and result["adapt"]["steps"] == 2
+    assert result["step"]["steps_per_s"] > 0 and result["adapt"]["heldout_rmse_before_mm"] > 0
+
+
 def test_benchmark_runs_at_small_settings(capsys):
     sys.path.insert(0, str(ROOT))
     try:

@@ -70,7 +70,8 @@ class AdaptationCard(BaseModel):
     n_nodes: int
     n_sensing_nodes: int
     files: dict[str, FileEntry] = Field(description="step, filter, fp32_model (the graph whose "
-                                        "initializers are replaced), family_model (the shipped graph).")
+                                        "initializers are replaced), family_model (the shipped graph), source_bundle (the training bundle "
+                                        "both were exported from).")
     trainable: list[str] = Field(description="Parameters the step updates (encoder and projection).")
     frozen: str = Field(description="What stays fixed during adaptation.")
     inputs: dict[str, str]

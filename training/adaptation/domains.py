@@ -208,7 +208,7 @@ def real_plugin(folder: Path, shared_data: Path = SHARED_DATA):
         raise FileNotFoundError(f"real ball presses not found in {d}")
     presses = load_presses(d / "background.png", d, d / "annotate.csv")
     model = fit_shading(presses, REAL_BALL_RADIUS_MM, REAL_MM_PER_PX).model
-    folder = Path(folder)
+    folder = Path(folder).resolve()
     folder.mkdir(parents=True, exist_ok=True)
     h, w = presses.shape
     camera = crop_camera_mapping(w, h, REAL_MM_PER_PX)

@@ -183,7 +183,8 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
     files = {"step": {"path": STEP_FILE, "sha256": _sha(out / STEP_FILE)},
              "filter": {"path": FILTER_FILE, "sha256": _sha(out / FILTER_FILE)},
              "fp32_model": {"path": rel(fp32), "sha256": _sha(fp32)},
-             "family_model": {"path": rel(family_onnx), "sha256": _sha(family_onnx)}}
+             "family_model": {"path": rel(family_onnx), "sha256": _sha(family_onnx)},
+             "source_bundle": {"path": rel(bundle), "sha256": _sha(bundle)}}
     pad_n = int(step.displacement_scale_mm.shape[0])
     card_doc = {
         "name": out.name,
