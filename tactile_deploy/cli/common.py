@@ -14,7 +14,9 @@ err_console = Console(stderr=True)
 
 def fail(message: str, code: int = 2) -> None:
     """Print ``message`` as an error (what went wrong and what to do) and exit."""
-    err_console.print(f"[bold red]error:[/] {message}")
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(message)}")  # brackets in paths or commands are text
     raise typer.Exit(code)
 
 
