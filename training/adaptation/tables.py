@@ -1,12 +1,13 @@
 """The paper's Table 2 on our domains, in one command.
 
-    python -m training.adaptation.tables --clean out/predictor/cpu_adapt --aug out/predictor/cpu_adapt_aug \
-        [--steps 200] [--n-adapt 200] [--n-eval 100] [--write docs/adaptation.md]
+    python -m training.adaptation.tables --aug out/predictor/shipped_aug [--clean exported/gelslim_mesh.pt] \
+        [--steps 200] [--lr 1e-4] [--n-adapt 200] [--n-eval 100] [--transfer clean|aug] [--write docs/adaptation.md]
 
-Two trained runs (or bundles with their exported ONNX models): one trained on clean simulated
-depth maps, one with augmentation. For each, the shipped ONNX graph and the adaptation step are
-exported into ``out/adapt/models/<clean|aug>/`` (the runtime's files, as ``tactile-deploy adapt``
-uses them), then every adaptation runs through the runtime's own code
+Two models: one trained on clean simulated depth maps (default: the shipped bundle with its ONNX
+model and committed step), one with augmentation (a training run folder, e.g. the augmented twin
+of :mod:`training.adaptation.augmented_twin`). A run folder without its exports gets the ONNX
+graph and the adaptation step exported into ``out/adapt/models/<clean|aug>/`` (the runtime's
+files, as ``tactile-deploy adapt`` uses them). Every adaptation runs through the runtime's own code
 (:mod:`tactile_deploy.adapt.step`): ``n_adapt`` depth maps of the target domain to adapt on,
 ``n_eval`` maps of *other* presses to measure on.
 
@@ -20,10 +21,11 @@ Figures per row, on the evaluation maps (mm in the data, um in the tables):
   (what the paper could not measure).
 
 Rows: Table 2a (ablation on Real-Prim = virtual gelslim1): adapt + aug., neither, aug. only,
-adapt only, adapt + aug. without the VAE filter. Table 2b (transfers, the augmented model):
+adapt only, adapt + aug. without the VAE filter. Table 2b (transfers, the ``--transfer`` model):
 Sim -> Real-Prim, Sim -> Real-Prim-2 (gelslim2), Real-Prim -> Real-Prim-2, Real-Prim ->
 Real-Novel (the shared STL indenters on gelslim1), Sim -> Real-Novel, Sim -> real ball presses
-(../shared/data/real, label-free only); and Sim-Prim, the simulator's own held-out maps.
+(../shared/data/real, label-free only); and Sim-Prim, the simulator's own held-out maps. Each
+virtual row also gives LF*, the label-free figure the true mesh would get (true depth vs VAE(I)).
 """
 
 from __future__ import annotations
