@@ -4,6 +4,7 @@
     torchrun --nproc_per_node 8 -m training train --config runs/big.json --device cuda
     python -m training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8]
     python -m training report-coarsening --data DATA.npz [--png FIGURE.png]
+    python -m training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
     python -m training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
     python -m training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
     python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
@@ -17,6 +18,11 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["export-adapt"]:
+        from training.adaptation.export import main as export_adapt
+
+        return export_adapt(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m training", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_train = sub.add_parser("train", help="pre-train both VAEs, then the latent projection")
@@ -26,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     p_export.add_argument("--run", required=True, help="run folder holding model.pt and heldout.npz")
     p_export.add_argument("--out", default="exported/gelslim_mesh.onnx", help="ONNX file to write")
     p_export.add_argument("--variant", default=None, help="export variant (default: the shipped one)")
+    sub.add_parser("export-adapt", help="export the adaptation step of a bundle (--help for its options)")
     p_rep = sub.add_parser("report-coarsening", help="reconstruction errors of the coarsening hierarchy")
     p_rep.add_argument("--data", required=True, help="npz with displacement_mm (S, n, 3): e.g. a run's heldout.npz")
     p_rep.add_argument("--png", help="also draw one contact projected down and up")

@@ -152,6 +152,40 @@ class StageConfig(_Strict):
     )
 
 
+class AugmentationConfig(_Strict):
+    """Augmentation of the simulated depth maps (:mod:`training.augment`); ranges are (low, high)
+    of uniform draws per map. Defaults: the ranges measured on the virtual GelSlim sensors
+    (``python -m training.adaptation.domain_gap``, docs/adaptation.md)."""
+
+    probability: float = Field(0.8, ge=0, le=1, description="Share of maps augmented (the rest pass clean).")
+    blur_sigma_mm: tuple[float, float] = Field((0.0, 0.7), description="Gaussian blur sigma, mm.")
+    halo_amount: tuple[float, float] = Field((0.0, 0.6), description="a of d + a (d - G_s(d)): negative ring around contacts.")
+    halo_sigma_mm: tuple[float, float] = Field((0.5, 2.0), description="s of the halo's Gaussian, mm.")
+    gain: tuple[float, float] = Field((0.6, 1.3), description="Depth scale factor (drawn log-uniform).")
+    view_box_probability: float = Field(0.5, ge=0, le=1, description="Share of maps cut to a random camera view box.")
+    view_half_width_mm: tuple[float, float] = Field((10.0, 17.5), description="Half-width (x) of the view box, mm.")
+    view_half_height_mm: tuple[float, float] = Field((7.0, 17.5), description="Half-height (y) of the view box, mm.")
+    view_offset_mm: float = Field(1.0, ge=0, description="The box centre lies within +-this of the pad centre, mm.")
+    view_min_visible: float = Field(0.7, ge=0, le=1, description="Cut only maps keeping this share of the contact's volume.")
+    perlin_rms_mm: tuple[float, float] = Field((0.0, 0.03), description="RMS of the Perlin noise, mm.")
+    perlin_wavelengths_mm: tuple[float, ...] = Field((8.0, 4.0, 2.0), description="Lattice cell of each Perlin octave, mm.")
+    noise_references: tuple[str, ...] = Field((), description="Noise reference images (.npy, (R, R) mm: a plugin's noise_reference.npy).")
+    noise_reference_gain: tuple[float, float] = Field((-2.0, 2.0), description="Factor of the added noise reference.")
+    pixel_noise_mm: float = Field(0.002, ge=0, description="Standard deviation of per-pixel Gaussian noise, mm.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "AugmentationConfig":
+        for name in ("blur_sigma_mm", "halo_amount", "halo_sigma_mm", "gain", "view_half_width_mm",
+                     "view_half_height_mm", "perlin_rms_mm", "noise_reference_gain"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"augmentation.{name}: low {lo} exceeds high {hi}")
+        if self.gain[0] <= 0 or min(self.blur_sigma_mm + self.halo_sigma_mm + self.perlin_rms_mm) < 0:
+            raise ValueError(f"augmentation: gain must be > 0 and sigmas/RMS >= 0, got gain {self.gain}, "
+                             f"blur {self.blur_sigma_mm}, halo {self.halo_sigma_mm}, perlin {self.perlin_rms_mm}")
+        return self
+
+
 class TrainConfig(_Strict):
     format_version: int = FORMAT_VERSION
     run_dir: str = Field(description="Checkpoints, curves and the exported model go here.")
@@ -170,6 +204,10 @@ class TrainConfig(_Strict):
     ood_decoder: StageConfig | None = Field(
         default_factory=lambda: StageConfig(epochs=20),
         description="Train the lean image decoder (deployed ood_score) on the frozen image encoder (None: skip).",
+    )
+    augmentation: AugmentationConfig | None = Field(
+        None, description="Augment depth maps (image VAE: augmented in, clean out; projection: latents of "
+        "augmented maps). None: train on clean maps only.",
     )
     eval_max_samples: int | None = Field(
         10000, gt=0, description="Held-out (and training-probe) samples evaluated at the end (None: all).",

@@ -3,11 +3,12 @@
 Data flow of :func:`train`::
 
     config -> data of this rank -> split by contact (80/20) -> scales from the training part
-      -> stage "image_vae"    (MSE + lambda_I KL on normalised depth)
+      -> stage "image_vae"    (MSE + lambda_I KL on normalised depth; with ``augmentation``: augmented in, clean out)
       -> stage "mesh_vae"     (MSE + lambda_M KL on normalised displacement)
       -> stage "lean_decoder" (optional: the deployment decoder, MSE from z ~ q(z | mesh), VAEs frozen)
       -> stage "ood_decoder"  (optional: small decoder of the frozen image latent, for ood_score)
-      -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen)
+      -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen;
+                               with ``augmentation``: latents of augmented maps)
       -> held-out evaluation of both decoders, OOD calibration
       -> run_dir/model.pt, heldout.npz, metrics.json, history.json, learning_curves.png
 
@@ -196,12 +197,13 @@ def prepare_data(cfg: TrainConfig, model: Predictor, dist: distributed.Dist, dev
     return train_data, val_data, scales
 
 
-def image_vae_step(sets: dict, kl_weight: float):
-    """Step of the image VAE stage on ``sets`` ({True: training, False: held-out} :class:`_Tensors`)."""
+def image_vae_step(sets: dict, kl_weight: float, augmented: Callable | None = None):
+    """Step of the image VAE stage on ``sets`` ({True: training, False: held-out} :class:`_Tensors`);
+    with ``augmented`` (normalised depth -> augmented copy) a denoising VAE: augmented in, clean out."""
 
     def step(m, idx, train):
         x = sets[train].depth[idx]
-        recon, mu, logvar = m(x, sample=train)
+        recon, mu, logvar = m(augmented(x) if train and augmented is not None else x, sample=train)
         return vae_loss(x, recon, mu, logvar, kl_weight)
 
     return step
@@ -218,12 +220,29 @@ def mesh_vae_step(sets: dict, mask: torch.Tensor, kl_weight: float):
     return step
 
 
-def projection_step(sets: dict, decoder: torch.nn.Module, mask: torch.Tensor, latent_weight: float):
-    """Step of the projection stage: mesh MSE through the frozen ``decoder`` + latent MSE."""
+def image_latents(sets: dict, encoder: torch.nn.Module | None = None, augmented: Callable | None = None):
+    """``latents(idx, train)`` -> image latent means (B, L): the cached ones, or with ``augmented``
+    those of augmented training maps through the frozen ``encoder``."""
+
+    def latents(idx, train):
+        t = sets[train]
+        if train and augmented is not None:
+            with torch.no_grad():
+                return encoder(augmented(t.depth[idx]))[0]
+        return t.z_image[idx]
+
+    return latents
+
+
+def projection_step(sets: dict, decoder: torch.nn.Module, mask: torch.Tensor, latent_weight: float,
+                    latents: Callable | None = None):
+    """Step of the projection stage: mesh MSE through the frozen ``decoder`` + latent MSE
+    (image latents from ``latents``, default the cached clean ones)."""
+    latents = latents or image_latents(sets)
 
     def step(m, idx, train):
         t = sets[train]
-        z = m(t.z_image[idx])
+        z = m(latents(idx, train))
         mse = torch.mean((decoder(z) * mask - t.disp[idx]) ** 2)
         lat = torch.mean((z - t.z_mesh[idx]) ** 2)
         loss = mse + latent_weight * lat
@@ -271,11 +290,12 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     sets = {True: tr, False: va}
     scale_mm = float(scales.displacement_scale_mm[0])
     mask = model.norm.free_mask
+    augmented = _augmentation(cfg, model, device, dist.rank)
 
     # -- stage 1: image VAE ------------------------------------------------------------------
     hist = {}
     hist["image_vae"] = run_stage(
-        "image_vae", model.image_vae, image_vae_step(sets, cfg.image_vae.kl_weight), tr.n, va.n, cfg.image_vae,
+        "image_vae", model.image_vae, image_vae_step(sets, cfg.image_vae.kl_weight, augmented), tr.n, va.n, cfg.image_vae,
         run_dir, dist, device, cfg.seed, log, scales.depth_scale_mm,
     )
 
@@ -330,9 +350,10 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         _freeze(model.ood_decoder)
 
     # -- stage 4: latent projection through the frozen mesh decoder -------------------------
+    latents = image_latents(sets, model.image_vae.encoder, augmented)
     hist["projection"] = run_stage(
         "projection", model.projection,
-        projection_step(sets, model.mesh_vae.decoder, mask, cfg.projection.latent_weight),
+        projection_step(sets, model.mesh_vae.decoder, mask, cfg.projection.latent_weight, latents),
         tr.n, va.n, cfg.projection, run_dir, dist, device, cfg.seed, log, scale_mm,
     )
 
@@ -359,7 +380,7 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
 
         def finetune_step(m, idx, train):
             t = sets[train]
-            pred = m(t.z_image[idx]) * mask
+            pred = m(latents(idx, train)) * mask
             mse = torch.mean((pred - t.disp[idx]) ** 2)
             return mse, {"loss": mse.detach(), "mse": mse.detach()}
 
@@ -410,6 +431,18 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         plot_curves(hist, run_dir / "learning_curves.png")
     distributed.barrier(dist)
     return metrics
+
+
+def _augmentation(cfg: TrainConfig, model: Predictor, device: torch.device, rank: int):
+    """x (B, 1, R, R) normalised depth -> augmented copy; None without ``cfg.augmentation``."""
+    if cfg.augmentation is None:
+        return None
+    from training.augment import Augmenter
+
+    aug = Augmenter(cfg.augmentation, cfg.model.image.resolution, device=device)
+    generator = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + rank + 1)
+    scale = model.norm.depth_scale_mm.to(device)
+    return lambda x: aug(x * scale, generator) / scale
 
 
 @torch.no_grad()

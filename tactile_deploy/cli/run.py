@@ -142,8 +142,12 @@ def run_command(
     runner = Runner(predictor, src, options, forces=estimator, publisher=publisher,
                     status=status, sensor=plugin.name)
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
-    err_console.print(f"running {plugin.name} on {src.name} with {predictor.providers[0]} "
-                      f"(Ctrl-C to stop)")
+    model = predictor.model_path
+    if model.is_relative_to(plugin.folder.resolve()):
+        model = model.relative_to(plugin.folder.resolve())
+    adapted = "adapted " if predictor.metadata.get("adapted") == "true" else ""
+    err_console.print(f"running {plugin.name} on {src.name} with {predictor.providers[0]}, {adapted}model "
+                      f"{model.as_posix()} (Ctrl-C to stop)")
     try:
         summary = runner.run()
     except (SourceError, RunError) as e:

@@ -22,7 +22,6 @@ data, and loading it never runs code from it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -42,6 +41,7 @@ from pydantic import (
     model_validator,
 )
 
+from tactile_deploy.checksums import file_sha256  # noqa: F401 - part of this module's interface
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.runtime.sources.config import SourceConfig
 
@@ -213,15 +213,6 @@ def load_manifest(path: str | os.PathLike) -> PluginManifest:
         return PluginManifest.model_validate(doc)
     except ValidationError as e:
         raise PluginError(_format_validation_error(path, e)) from None
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """sha256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # ------------------------------------------------------------------------------------ hooks
@@ -398,12 +389,39 @@ class SensorPlugin:
 
     def model_path(self, adapted: bool | None = None) -> Path:
         """The ONNX model: the adapted one when present (unless ``adapted=False``)."""
+        active = self.adapted_model_path()
         if adapted is None:
-            adapted = self.manifest.adapted_model is not None
-        if adapted and self.manifest.adapted_model is None:
-            raise PluginError(f"plugin {self.name!r} has no adapted_model; run without asking "
-                              "for the adapted model, or adapt one first")
-        return self.verified_path("adapted_model" if adapted else "model")
+            adapted = active is not None
+        if adapted and active is None:
+            raise PluginError(f"plugin {self.name!r} has no adapted model; run without asking "
+                              "for the adapted model, or adapt one first (tactile-deploy adapt)")
+        return active if adapted else self.verified_path("model")
+
+    def adapted_model_path(self) -> Path | None:
+        """The adapted model in use: the active version written by ``tactile-deploy adapt``
+        (``adapted/history.json``, checked against its sha256) when it was adapted from this
+        plugin's family model, else the manifest's ``adapted_model``, else None."""
+        from tactile_deploy.adapt.versions import active_version
+
+        try:
+            rec = active_version(self.folder)
+        except ValueError as e:
+            raise PluginError(f"plugin {self.name!r}: {e}") from None
+        if rec is not None and rec.family_model_sha256 != self.manifest.model.sha256:
+            log.warning("plugin %r: adapted version %d was made from another family model (sha256 %s..., now "
+                        "%s...); using the plugin's own model - adapt again for the new one", self.name,
+                        rec.version, rec.family_model_sha256[:12], self.manifest.model.sha256[:12])
+        elif rec is not None:
+            path = (self.folder / rec.model).resolve()
+            if not path.is_file() or file_sha256(path) != rec.sha256:
+                raise PluginError(
+                    f"plugin {self.name!r}: active adapted version {rec.version} ({path}) is missing or does not "
+                    f"match its sha256 in adapted/history.json; restore it, or go back with "
+                    f"`tactile-deploy adapt --sensor {self.name} --rollback`")
+            return path
+        if self.manifest.adapted_model is not None:
+            return self.verified_path("adapted_model")
+        return None
 
     @property
     def camera_mapping(self) -> CameraMapping:
@@ -554,10 +572,12 @@ def validate_plugin(name_or_path: str | os.PathLike, check_model: bool = True) -
         attempt("model contract", lambda: check_model_contract(
             plugin.verified_path("model"), manifest.family.mesh_hash, what=f"plugin "
             f"{manifest.name!r} model"))
-        if manifest.adapted_model is not None:
-            attempt("adapted model contract", lambda: check_model_contract(
-                plugin.verified_path("adapted_model"), manifest.family.mesh_hash,
-                what=f"plugin {manifest.name!r} adapted_model"))
+        def adapted_contract():
+            path = plugin.adapted_model_path()
+            if path is not None:
+                check_model_contract(path, manifest.family.mesh_hash, what=f"plugin {manifest.name!r} adapted model")
+
+        attempt("adapted model contract", adapted_contract)
     return report
 
 

@@ -1,0 +1,321 @@
+"""Adapt a sensor plugin's model to the sensor, from its unlabelled frames.
+
+Data flow of :func:`adapt_plugin` (``tactile-deploy adapt``)::
+
+    frames (a folder, a clip, a camera, the plugin's demo) --plugin's imaging pipeline--> depth (N, 128, 128) mm
+      -> split into adaptation / held-out frames (blocks of consecutive frames)
+      -> targets: VAE(depth) (filter.onnx; or the depth itself without the filter)
+      -> step program with the active model's weights (adapted version, else the family model)
+      -> held-out label-free RMSE before -> Adam steps (progress, live loss) -> held-out RMSE after
+      -> improved? adapted ONNX (fp32 graph with new initializers; int8 like the family model),
+         parity with the step program, before/after figure, report
+         -> plugin version adapted/v<n>, made active in adapted/history.json (atomic; plugin.json untouched;
+            tactile_deploy.adapt.versions)
+
+The label-free RMSE (mm) is the paper's metric: RMS over the held-out maps and the pixels the
+sensor sees of rendered mesh minus target.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from tactile_deploy.adapt.step import AdaptSettings, Evaluation, History, StepProgram, adapt, evaluate, vae_filter
+
+#: Parity the adapted fp32 ONNX model must reach against the step program (mm).
+PARITY_TOLERANCE_MM = 1e-4
+
+
+@dataclass
+class AdaptOptions:
+    """steps, batch_size, lr: Adam; held_out: share of frames kept aside (in blocks of ``block``
+    consecutive frames); use_filter: target VAE(I) (False: I, the ablation); start: "active"
+    (the plugin's active adapted model, else the family's) or "family"; write: create a version
+    when the held-out RMSE improved."""
+
+    steps: int = 200
+    batch_size: int = 16
+    lr: float = 1e-4
+    held_out: float = 0.2
+    block: int = 10
+    use_filter: bool = True
+    device: str = "cpu"
+    seed: int = 0
+    start: str = "active"
+    write: bool = True
+
+
+@dataclass
+class AdaptResult:
+    before: Evaluation
+    after: Evaluation
+    history: History
+    n_train: int
+    n_held_out: int
+    improved: bool
+    version: object | None = None
+    report: dict = field(default_factory=dict)
+    figure: Path | None = None
+
+
+def default_step_folder(plugin) -> Path:
+    """``<family model stem>_adapt`` beside the plugin's family model."""
+    model = plugin.path_of("model")
+    return model.with_name(model.stem + "_adapt")
+
+
+def view_weight(plugin) -> np.ndarray:
+    """(128, 128) float32 in [0, 1]: share of each model-grid cell the plugin's camera sees
+    (its imaging grid), times the pad's disc."""
+    from tactile_deploy.camera.depth import DepthCamera
+    from tactile_deploy.pad.asset import load_pad
+    from tactile_deploy.runtime.pipeline import GridResampler
+    from tactile_deploy.runtime.plugins import MODEL_GRID
+
+    fam = plugin.manifest.family
+    pad = load_pad(fam.pad, fam.pad_version)
+    disc = DepthCamera().render(pad, pad.vertices).mask.astype(np.float32)
+    grid = plugin.manifest.camera.grid
+    if grid == MODEL_GRID:
+        return disc
+    cover = GridResampler(grid, MODEL_GRID)(np.ones((grid.ny, grid.nx), np.float32))
+    return (np.clip(cover, 0.0, 1.0) * disc).astype(np.float32)
+
+
+def collect_depths(plugin, config, from_manifest: bool = False, max_frames: int | None = None,
+                   log: Callable[[str], None] = print) -> tuple[np.ndarray, dict]:
+    """Depth maps (N, 128, 128) float32 mm of the frames of source ``config`` through the
+    plugin's imaging pipeline; frames the pipeline refuses are counted and skipped."""
+    from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
+    from tactile_deploy.runtime.sources.factory import make_source
+
+    pipeline = ImagingPipeline.from_plugin(plugin)
+    depths, refused = [], 0
+    with make_source(config, plugin, from_manifest=from_manifest) as src:
+        if not getattr(src, "finite", True) and max_frames is None:
+            raise ValueError(f"{src.name} is a live source: give --max-frames (how many frames to collect)")
+        while max_frames is None or len(depths) < max_frames:
+            frame = src.read()
+            if frame is None:
+                break
+            try:
+                depths.append(pipeline.frame_to_depth(frame.image))
+            except FrameError as e:
+                refused += 1
+                if refused <= 3:
+                    log(f"frame {frame.index} refused: {e}")
+        name = src.name
+    if not depths:
+        raise ValueError(f"{name}: no usable frames")
+    return np.stack(depths).astype(np.float32), {"source": name, "frames": len(depths), "refused": refused}
+
+
+def split_blocks(n: int, held_out: float, block: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(adaptation, held-out) frame indices: blocks of ``block`` consecutive frames (neighbouring
+    frames of a recording are near copies), a seeded ``held_out`` share of the blocks aside."""
+    if n < 2:
+        raise ValueError(f"need at least 2 frames to keep some aside, got {n}")
+    blocks = np.arange(n) // max(1, block)
+    ids = np.unique(blocks)
+    if len(ids) < 2:  # too few frames for blocks: hold out single frames
+        blocks, ids = np.arange(n), np.arange(n)
+    k = min(max(1, int(round(held_out * len(ids)))), len(ids) - 1)
+    aside = np.random.default_rng(seed).permutation(ids)[:k]
+    is_held = np.isin(blocks, aside)
+    return np.flatnonzero(~is_held), np.flatnonzero(is_held)
+
+
+def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folder: str | Path | None = None,
+                 progress: Callable[[int, float], None] | None = None, log: Callable[[str], None] = print,
+                 source: dict | None = None) -> AdaptResult:
+    """Adapt ``plugin``'s model on ``depth_mm`` (N, 128, 128) mm (module docstring)."""
+    from tactile_deploy.adapt.versions import add_version, check_writable, staging_folder
+    from tactile_deploy.adapt.weights import read_adapted_weights
+
+    t_start = time.perf_counter()
+    if options.write:
+        check_writable(plugin)
+    folder = Path(step_folder) if step_folder is not None else default_step_folder(plugin)
+    step = StepProgram.load(folder, options.device)
+    step.check_family_model(plugin.verified_path("model"))
+    card = step.card
+    start_model = "family model"
+    active = plugin.adapted_model_path() if options.start == "active" else None
+    if active is not None:
+        fp32 = active.with_name("model_fp32.onnx")
+        step.load_weights(read_adapted_weights(card, fp32 if fp32.is_file() else active))
+        start_model = f"adapted model {active.parent.name}"
+    weight = view_weight(plugin)
+    depth = np.asarray(depth_mm, np.float32)
+    target = vae_filter(step, depth) if options.use_filter else depth.copy()
+    tr, ho = split_blocks(len(depth), options.held_out, options.block, options.seed)
+    log(f"{len(depth)} frames: {len(tr)} to adapt on, {len(ho)} held out; starting from the {start_model}; "
+        f"target: {'VAE(depth)' if options.use_filter else 'depth (no filter)'}")
+    before = evaluate(step, depth[ho], target[ho], weight, keep=("rendered",))
+    settings = AdaptSettings(steps=options.steps, batch_size=options.batch_size, lr=options.lr, seed=options.seed)
+    history = adapt(step, depth[tr], target[tr], weight, settings, progress)
+    after = evaluate(step, depth[ho], target[ho], weight, keep=("rendered", "displacement"))
+    improved = after.rmse_mm < before.rmse_mm
+    report = {
+        "plugin": plugin.name, "source": source or {}, "start": start_model, "step": str(folder),
+        "step_card": {"name": card.name, "sha256": card.files["step"].sha256, "torch": card.versions.get("torch")},
+        "frames": {"adapt": int(len(tr)), "held_out": int(len(ho))},
+        "settings": {"steps": options.steps, "batch_size": options.batch_size, "lr": options.lr,
+                     "use_filter": options.use_filter, "device": options.device, "seed": options.seed},
+        "heldout_rmse_before_mm": before.rmse_mm, "heldout_rmse_after_mm": after.rmse_mm,
+        "train_loss_first_mm2": history.loss_mm2[0], "train_loss_last_mm2": history.loss_mm2[-1],
+        "adapt_seconds": history.seconds, "steps_per_s": options.steps / max(history.seconds, 1e-9),
+        "renderer_overflow": after.overflow + before.overflow,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "improved": bool(improved),
+    }
+    result = AdaptResult(before, after, history, len(tr), len(ho), improved, report=report)
+    if not (improved and options.write):
+        report["seconds"] = time.perf_counter() - t_start
+        return result
+
+    staging = staging_folder(plugin)
+    try:
+        result.report.update(_write_models(step, staging, depth[tr], depth[ho], after.displacement_mm, report))
+        result.figure = staging / "adaptation.png"
+        before_after_figure(depth[ho], target[ho], before.rendered_mm, after.rendered_mm, weight, result.figure,
+                            before.rmse_mm, after.rmse_mm)
+        report["seconds"] = time.perf_counter() - t_start
+        from tactile_deploy.atomic import write_json
+
+        write_json(staging / "report.json", report)
+        summary = (f"{len(tr)} + {len(ho)} held-out frames of {report['source'].get('source', 'depth maps')}, "
+                   f"{options.steps} steps in {history.seconds:.0f} s on {options.device}")
+        result.version = add_version(plugin, staging, {
+            "created": report["created"], "heldout_rmse_before_mm": before.rmse_mm,
+            "heldout_rmse_after_mm": after.rmse_mm, "summary": summary})
+        result.figure = Path(plugin.folder) / result.version.model.rsplit("/", 1)[0] / "adaptation.png"
+    finally:
+        if staging.exists():
+            import shutil
+
+            shutil.rmtree(staging)
+    return result
+
+
+def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, depth_held: np.ndarray,
+                  step_disp: np.ndarray, report: dict) -> dict:
+    """Write model.onnx (and model_fp32.onnx when the family graph is int8) into ``folder``;
+    check the fp32 graph against the step program's displacements on the held-out maps."""
+    from tactile_deploy.adapt.weights import adaptation_metadata, quantise_int8, write_adapted_onnx
+    from tactile_deploy.runtime.predictor import make_session
+
+    card = step.card
+    fp32_src = card.path(step.folder, "fp32_model")
+    meta = adaptation_metadata(card, {k: report[k] for k in ("heldout_rmse_before_mm", "heldout_rmse_after_mm",
+                                                              "frames", "settings", "created")})
+    int8 = bool(card.int8_nodes)
+    fp32_path = folder / ("model_fp32.onnx" if int8 else "model.onnx")
+    meta["variant"] = card.family_variant.replace("-int8", "") + "-adapted"
+    write_adapted_onnx(card, fp32_src, step.weights(), fp32_path, meta)
+    session = make_session(fp32_path, threads=1, providers="cpu")
+    d = depth_held[:, None].astype(np.float32)
+    onnx_disp = np.concatenate([session.run(["displacement"], {"depth": d[i:i + 32]})[0] for i in range(0, len(d), 32)])
+    parity = float(np.abs(onnx_disp - step_disp).max())
+    if not parity <= PARITY_TOLERANCE_MM:
+        raise RuntimeError(f"the adapted ONNX model differs from the adapted step by {parity:.3g} mm (tolerance "
+                           f"{PARITY_TOLERANCE_MM} mm); nothing was written to the plugin")
+    out = {"parity_fp32_onnx_vs_step_max_abs_diff_mm": parity, "int8": int8}
+    if int8:
+        cal = depth_train[np.random.default_rng(0).permutation(len(depth_train))[:256]][:, None]
+        quantise_int8(fp32_path, folder / "model.onnx", cal, card.int8_nodes)
+        from tactile_deploy.adapt.weights import write_metadata_entries
+
+        write_metadata_entries(folder / "model.onnx", {"variant": card.family_variant + "-adapted"})
+        q = make_session(folder / "model.onnx", threads=1, providers="cpu")
+        q_disp = np.concatenate([q.run(["displacement"], {"depth": d[i:i + 32]})[0] for i in range(0, len(d), 32)])
+        out["int8_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((q_disp - onnx_disp) ** 2)))
+        out["int8_vs_fp32_max_abs_diff_mm"] = float(np.abs(q_disp - onnx_disp).max())
+    out.update(_ood_shares(card.path(step.folder, "family_model"), folder / "model.onnx", d))
+    return out
+
+
+def _ood_shares(family: Path, adapted: Path, depth: np.ndarray) -> dict:
+    """Share of the held-out maps above the model's ood_threshold, family vs adapted model (the
+    adapted encoder feeds the same out-of-distribution decoder)."""
+    from tactile_deploy.runtime.predictor import make_session
+
+    out = {}
+    for key, path in (("family", family), ("adapted", adapted)):
+        sess = make_session(path, threads=1, providers="cpu")
+        meta = sess.get_modelmeta().custom_metadata_map
+        if "ood_threshold" not in meta:
+            return {}
+        ood = np.concatenate([sess.run(["ood_score"], {"depth": depth[i:i + 32]})[0] for i in range(0, len(depth), 32)])
+        out[f"ood_share_above_threshold_{key}"] = float(np.mean(ood > float(meta["ood_threshold"])))
+    return out
+
+
+def before_after_figure(depth, target, before, after, weight, path: Path, rmse_before: float,
+                        rmse_after: float, n: int = 4) -> Path:
+    """Held-out maps (deepest ``n``): input depth, target, rendered mesh before and after, and
+    the two errors inside the sensor's view (mm). Written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tactile_deploy.atomic import atomic_path
+
+    pick = np.argsort([-float((t * weight).max()) for t in target])[:n]
+    cols = ["input depth I", "target", "rendered before", "rendered after", "error before", "error after"]
+    fig, axes = plt.subplots(len(pick), len(cols), figsize=(2.3 * len(cols), 2.3 * len(pick) + 0.6), squeeze=False)
+    inside = weight > 0.5
+    for r, i in enumerate(pick):
+        vmax = max(float(np.abs(target[i]).max()), 0.05)
+        imgs = [depth[i], target[i], before[i], after[i], (before[i] - target[i]) * inside, (after[i] - target[i]) * inside]
+        for c, img in enumerate(imgs):
+            ax = axes[r, c]
+            if c < 4:
+                ax.imshow(img, cmap="viridis", vmin=-0.1 * vmax, vmax=vmax)
+            else:
+                ax.imshow(img, cmap="RdBu_r", vmin=-0.5 * vmax, vmax=0.5 * vmax)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(cols[c], fontsize=9)
+    fig.suptitle(f"held-out label-free RMSE {rmse_before * 1e3:.1f} um -> {rmse_after * 1e3:.1f} um "
+                 f"(colour: depth 0 to {vmax:.2f} mm of the last row; errors +-half of it)", fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def summary_lines(result: AdaptResult) -> list[str]:
+    r = result.report
+    lines = [
+        f"held-out label-free RMSE: {result.before.rmse_mm * 1e3:.2f} um -> {result.after.rmse_mm * 1e3:.2f} um "
+        f"({100 * (result.after.rmse_mm / result.before.rmse_mm - 1):+.2f} %, {result.n_held_out} frames; "
+        f"{'improved' if result.improved else 'not improved'})",
+        f"adaptation loss: {math.sqrt(r['train_loss_first_mm2']) * 1e3:.2f} -> {math.sqrt(r['train_loss_last_mm2']) * 1e3:.2f} um "
+        f"RMS over {r['settings']['steps']} steps, {r['adapt_seconds']:.1f} s ({r['steps_per_s']:.2f} steps/s)",
+    ]
+    if "parity_fp32_onnx_vs_step_max_abs_diff_mm" in r:
+        lines.append(f"adapted ONNX vs step program: max {r['parity_fp32_onnx_vs_step_max_abs_diff_mm']:.2e} mm"
+                     + (f"; int8 vs fp32 RMS {r['int8_vs_fp32_rms_diff_mm'] * 1e3:.2f} um" if r.get("int8") else ""))
+    if "ood_share_above_threshold_adapted" in r:
+        lines.append(f"held-out frames flagged out of distribution: {100 * r['ood_share_above_threshold_family']:.0f} % "
+                     f"(family model) -> {100 * r['ood_share_above_threshold_adapted']:.0f} % (adapted)")
+    if r.get("renderer_overflow"):
+        lines.append(f"warning: {r['renderer_overflow']} triangles exceeded the renderer's pixel budget "
+                     "(very large lateral displacements); their pixels may be missing from the loss")
+    return lines
+
+
+def report_json(result: AdaptResult) -> str:
+    return json.dumps(result.report, indent=2)

@@ -1,0 +1,126 @@
+"""``tactile-deploy adapt --sensor NAME [--frames DIR | --source ...] [--steps N] [--device cpu|cuda]``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from tactile_deploy.cli.common import console, err_console, fail
+
+
+def adapt_command(
+    sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder (`tactile-deploy plugins list`)."),
+    frames: Path | None = typer.Option(None, "--frames", help="Folder of the sensor's camera frames (images)."),
+    pattern: str = typer.Option("*.png", "--pattern", help="Which files of --frames to read."),
+    source: str | None = typer.Option(
+        None, "--source", help="Or a frame source: demo | camera index (0) | video | recording.npz | virtual[:NAME] "
+        "(as in `tactile-deploy run`). Default: the plugin's default source."),
+    max_frames: int | None = typer.Option(200, "--max-frames", min=2, help="Frames to collect (a camera: required)."),
+    steps: int = typer.Option(200, "--steps", min=1, help="Adam steps."),
+    batch_size: int = typer.Option(16, "--batch", min=1, help="Depth maps per step."),
+    lr: float = typer.Option(1e-4, "--lr", min=0.0, help="Adam learning rate."),
+    held_out: float = typer.Option(0.2, "--held-out", min=0.01, max=0.9, help="Share of frames kept aside to judge the adaptation."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda (torch device)."),
+    no_filter: bool = typer.Option(False, "--no-filter", help="Match the raw depth map instead of the image VAE's "
+                                   "reconstruction (the paper's ablation; usually worse)."),
+    from_family: bool = typer.Option(False, "--from-family", help="Start from the family model, not the active "
+                                     "adapted one."),
+    step_dir: Path | None = typer.Option(None, "--step", help="Adaptation step folder (default: <family model>_adapt "
+                                         "beside the family model)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the held-out split and the batch order."),
+    threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: torch's)."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Measure only: write nothing to the plugin."),
+    rollback: bool = typer.Option(False, "--rollback", help="Make the previous adapted version (or the plugin's "
+                                  "own model) active again, and stop."),
+) -> None:
+    """Adapt a plugin's model to its sensor from unlabelled frames (self-supervised); writes a new
+    version into the plugin's adapted/ folder only when the held-out error improves (the plugin's
+    own files are never changed)."""
+    from tactile_deploy.adapt.card import CardError
+    from tactile_deploy.adapt.weights import AdaptationUnavailable
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+    from tactile_deploy.runtime.sources.base import SourceError
+    from tactile_deploy.runtime.sources.config import ImageFolderSourceConfig, SourceSpecError, parse_source
+
+    try:
+        plugin = SensorPlugin.load(sensor)
+    except PluginError as e:
+        fail(str(e))
+    if rollback:
+        from tactile_deploy.adapt.versions import rollback as do_rollback
+
+        try:
+            was, now = do_rollback(plugin)
+        except (ValueError, FileNotFoundError, PermissionError) as e:
+            fail(str(e))
+        name = {None: "the plugin's own model"}
+        console.print(f"{plugin.name}: {name.get(was, f'version {was}')} -> {name.get(now, f'version {now}')} "
+                      f"(active now; all versions kept in {plugin.folder / 'adapted'})")
+        return
+    if frames is not None and source is not None:
+        fail("give --frames or --source, not both")
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        fail(f"--device must be cpu or cuda, got {device!r}")
+    try:
+        if frames is not None:
+            if not frames.is_dir():
+                fail(f"--frames {frames} is not a folder of images")
+            config, from_manifest = ImageFolderSourceConfig(path=str(frames), pattern=pattern), False
+        elif source is not None:
+            config, from_manifest = parse_source(source), False
+        else:
+            config, from_manifest = plugin.manifest.default_source, True
+        from tactile_deploy.adapt.step import require_torch
+        from tactile_deploy.adapt.weights import require_onnx
+
+        torch = require_torch()
+        require_onnx()
+        if threads is not None:
+            torch.set_num_threads(threads)
+        from tactile_deploy.adapt.workflow import AdaptOptions, adapt_plugin, collect_depths, summary_lines
+
+        depth, info = collect_depths(plugin, config, from_manifest, max_frames, log=err_console.print)
+        err_console.print(f"{info['frames']} frames from {info['source']}" + (f" ({info['refused']} refused)" if info["refused"] else ""))
+        options = AdaptOptions(steps=steps, batch_size=batch_size, lr=lr, held_out=held_out, use_filter=not no_filter,
+                               device=device, seed=seed, start="family" if from_family else "active", write=not dry_run)
+        with _loss_progress(steps) as progress:
+            result = adapt_plugin(plugin, depth, options, step_dir, progress=progress, log=err_console.print,
+                                  source=info)
+    except (PluginError, CardError, AdaptationUnavailable, SourceSpecError, SourceError, ValueError,
+            FileNotFoundError, PermissionError, RuntimeError) as e:
+        fail(str(e))
+    for line in summary_lines(result):
+        console.print(line)
+    if result.version is not None:
+        console.print(f"[bold green]new version {result.version.version}[/] of {plugin.name}: {result.version.model} "
+                      f"(active; `tactile-deploy adapt --sensor {plugin.name} --rollback` returns to the previous one); "
+                      f"figure: {result.figure}")
+    elif dry_run:
+        console.print("dry run: nothing written")
+    else:
+        console.print(f"the held-out error did not improve: {plugin.name} keeps its current model")
+
+
+class _loss_progress:
+    """Progress bar of the Adam steps with the live loss (RMS, um)."""
+
+    def __init__(self, total: int):
+        self.total = total
+
+    def __enter__(self):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(TextColumn("[bold]adapting"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("loss {task.fields[loss]} um RMS"), TimeElapsedColumn(),
+                                 console=err_console)
+        self.progress.__enter__()
+        self.task = self.progress.add_task("adapt", total=self.total, loss="-")
+
+        def advance(k: int, loss_mm2: float) -> None:
+            self.progress.update(self.task, completed=k, loss=f"{loss_mm2 ** 0.5 * 1e3:.2f}")
+
+        return advance
+
+    def __exit__(self, *exc):
+        return self.progress.__exit__(*exc)
