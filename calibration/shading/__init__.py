@@ -4,7 +4,8 @@ Modules: :mod:`.presses` (reference, press frames, annotation CSV), :mod:`.circl
 contact detection, shared-colour-model centre refinement, contact radius from gradients),
 :mod:`.targets` (sphere gradients of the ball's radius), :mod:`.press_profile` (the ball press
 solved by the FEM of the pad: targets around the contact), :mod:`.fit` (the table and the depth
-integration weights), :mod:`.baselines` (RGB-difference table and per-pixel MLP, as public tools
+integration weights), :mod:`.colour_prior` (the table's fallback: a polynomial in colour and
+position), :mod:`.baselines` (RGB-difference table and per-pixel MLP, as public tools
 do), :mod:`.evaluate` (sphere fits, grouped cross-validation, depth errors), :mod:`.compare`
 (all three side by side), :mod:`.virtual_check` (absolute depth on virtual-sensor presses),
 :mod:`.cli` (``calibrate shading`` and ``depth`` commands),

@@ -13,8 +13,11 @@ Pipeline (each step a function of this module or of :mod:`.circles`):
    then gets, with a lower weight (``ring_stride``);
 4. the table: the mean target of each colour bin (saturated channels in a bin of their own),
    smoothed over image position with a Gaussian of ``kernel_sigma_mm`` and stored at nodes
-   every ``node_spacing_mm``; where a node has few samples of a bin it falls back to the mean
-   over the whole image (weight ``prior_weight`` samples);
+   every ``node_spacing_mm``; where a node has few samples of a bin it falls back to a prior
+   (weight ``prior_weight`` samples): the bin's mean over the whole image, or (``prior_model =
+   "colour-polynomial"``) a polynomial in colour and position fitted to all samples
+   (:mod:`.colour_prior`), which keeps the place's colour-to-slope relation where the steep
+   slopes' bins are nearly empty;
 5. the target region re-measured on the fitted gradients and the table refitted: first
    ``initial_fraction`` of the given radius, then ``train_fraction`` of the radius where the
    table's radial slope peaks (:func:`.circles.contact_radius_from_gradients` with
@@ -50,6 +53,7 @@ from .circles import (
     detect_contact_circle,
     refine_centres,
 )
+from .colour_prior import ColourPolynomial
 from .presses import PressSet
 from .targets import sphere_gradients_at
 
@@ -65,7 +69,10 @@ class ShadingFitConfig:
     node_spacing_mm: float = 2.0        # position grid of the table
     kernel_sigma_mm: float = 1.0        # position smoothing of the table
     prior_sigma_mm: float | None = 3.0  # wider smoothing used where the first has few samples
-    prior_weight: float = 1.0           # samples' worth of the whole-image mean per node and bin
+    prior_weight: float = 1.0           # samples' worth of the prior per node and bin
+    prior_model: str = "image-mean"     # "image-mean" or "colour-polynomial" (.colour_prior)
+    prior_far_weight: float = 0.1       # weight of the zero-gradient far samples in the polynomial
+    prior_position_degree: int = 2      # position dependence of the polynomial's coefficients
     initial_fraction: float = 0.75      # target region / given radius, first fit
     train_fraction: float = 0.9         # target region / radius of the table's steepest slope
     radius_iterations: int = 2          # re-measure radii and refit, times
@@ -106,7 +113,8 @@ def colour_differences(presses: PressSet, inlier_grey: float = 12.0):
 
 def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: ShadingFitConfig,
                       profiles=None, mm_per_px: float = 1.0):
-    """(bin index, target (., 2), column, row) of the contact, ring and far-field samples.
+    """(bin index, target (., 2), column, row, far (.,) bool) of the contact, ring and
+    far-field samples.
 
     Inside ``radii`` the sphere of the ball; where a press has a profile
     (:class:`~calibration.shading.press_profile.PressProfile`), the ring from there out to
@@ -116,7 +124,7 @@ def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: Sha
     """
     h, w = diffs.shape[1:3]
     far_r, far_c = np.mgrid[0:h:cfg.far_stride, 0:w:cfg.far_stride]
-    keys, targets, cs, rs = [], [], [], []
+    keys, targets, cs, rs, fars = [], [], [], [], []
     for i in range(len(diffs)):
         cx, cy, a = circles[i]
         rad = radii[i]
@@ -136,26 +144,29 @@ def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: Sha
             parts.append((rows[ring], cols[ring],
                           prof.image_gradients(cols[ring], rows[ring], (cx, cy), mm_per_px)))
         parts.append((far_r[far], far_c[far], np.zeros((int(far.sum()), 2))))
-        for r, c, t in parts:
+        for k, (r, c, t) in enumerate(parts):
             keys.append(colour_bin_index(diffs[i][r, c], saturated[i][r, c], cfg.bins,
                                          cfg.colour_min, cfg.colour_max))
             targets.append(t)
             cs.append(c)
             rs.append(r)
+            fars.append(np.full(len(r), k == len(parts) - 1))
     return (np.concatenate(keys), np.concatenate(targets), np.concatenate(cs).astype(float),
-            np.concatenate(rs).astype(float))
+            np.concatenate(rs).astype(float), np.concatenate(fars))
 
 
 # --------------------------------------------------------------------------------- table
 def fit_table(keys, targets, cols, rows, shape, spacing_px: float, sigma_px: float,
-              bins: int, prior_weight: float, prior_sigma_px: float | None = None):
+              bins: int, prior_weight: float, prior_sigma_px: float | None = None,
+              prior: ColourPolynomial | None = None):
     """Position-dependent table from samples.
 
     keys : (S,) flat colour-bin indices; targets : (S, 2) image-axis gradients; cols, rows :
-    (S,) pixel positions. Where a node has few samples of a bin, the table falls back to the
-    same estimate with a wider kernel (``prior_sigma_px``, if given) and then to the mean over
-    the whole image, each with the weight of ``prior_weight`` samples. Returns (slot_of_bin ((bins+1)^3,) int64, table (ny, nx, slots, 2)
-    float32).
+    (S,) pixel positions. Where a node has few samples of a bin, the table falls back, with the
+    weight of ``prior_weight`` samples, to ``prior`` evaluated at the node and bin if given;
+    otherwise to the same estimate with a wider kernel (``prior_sigma_px``, if given) and then
+    to the bin's mean over the whole image. Returns (slot_of_bin ((bins+1)^3,) int64, table
+    (ny, nx, slots, 2) float32).
     """
     nb = bins + 1
     n_bins = nb ** 3
@@ -188,23 +199,38 @@ def fit_table(keys, targets, cols, rows, shape, spacing_px: float, sigma_px: flo
           + (node_r.reshape(-1, 1) - rr.reshape(1, -1)) ** 2)     # (nodes, cells)
     sums = [scipy.sparse.csr_matrix((vals, (ci, slot)), shape=(ncx * ncy, n_slots))
             for vals in (np.ones(len(keys)), targets[:, 0], targets[:, 1])]
-    prior = glob[populated]                                       # (slots, 2)
-    for sigma in ([prior_sigma_px] if prior_sigma_px else []) + [sigma_px]:
+    if prior is not None:
+        fallback = prior.at_nodes(populated, node_c, node_r)      # (nodes, slots, 2)
+        sigmas = [sigma_px]
+    else:
+        fallback = glob[populated]                                # (slots, 2)
+        sigmas = ([prior_sigma_px] if prior_sigma_px else []) + [sigma_px]
+    est = fallback
+    for sigma in sigmas:
         wn = np.exp(-d2 / (2.0 * sigma ** 2))
         acc = [np.asarray((m.T @ wn.T).T) for m in sums]          # (nodes, slots) each
         den = acc[0] + prior_weight
-        prior = np.stack([(acc[1] + prior_weight * prior[..., 0]) / den,
-                          (acc[2] + prior_weight * prior[..., 1]) / den], -1)
-    table = prior
+        est = np.stack([(acc[1] + prior_weight * est[..., 0]) / den,
+                        (acc[2] + prior_weight * est[..., 1]) / den], -1)
+    table = est
     return slot_of_bin, table.reshape(ny, nx, n_slots, 2).astype(np.float32)
 
 
-def _build_model(keys, targets, cols, rows, shape, presses_n, mm_per_px, ball_radius_mm,
+def _build_model(keys, targets, cols, rows, far, shape, presses_n, mm_per_px, ball_radius_mm,
                  cfg: ShadingFitConfig, weights=(1.0, 1.0), metrics=None) -> ShadingModel:
     spacing_px = cfg.node_spacing_mm / mm_per_px
+    prior = None
+    if cfg.prior_model == "colour-polynomial":
+        prior = ColourPolynomial.fit(keys, targets, cols, rows, shape, cfg.bins,
+                                     np.where(far, cfg.prior_far_weight, 1.0),
+                                     position_degree=cfg.prior_position_degree)
+    elif cfg.prior_model != "image-mean":
+        raise ValueError(f"prior_model must be 'image-mean' or 'colour-polynomial', got "
+                         f"{cfg.prior_model!r}")
     slot_of_bin, table = fit_table(keys, targets, cols, rows, shape, spacing_px,
                                    cfg.kernel_sigma_mm / mm_per_px, cfg.bins, cfg.prior_weight,
-                                   cfg.prior_sigma_mm / mm_per_px if cfg.prior_sigma_mm else None)
+                                   cfg.prior_sigma_mm / mm_per_px if cfg.prior_sigma_mm else None,
+                                   prior)
     header = ShadingHeader(
         image_height_px=shape[0], image_width_px=shape[1], mm_per_px=mm_per_px,
         ball_radius_mm=ball_radius_mm, bins=cfg.bins, colour_min=cfg.colour_min,

@@ -119,7 +119,7 @@ class ShadingSettings(BaseModel):
 
     model_config = _STRICT
 
-    bins: int = Field(32, ge=4, le=128, description="Colour bins per channel.")
+    bins: int = Field(24, ge=4, le=128, description="Colour bins per channel.")
     node_spacing_mm: float = Field(3.0, gt=0, description="Spacing of the table's position "
                                    "grid, mm.")
     kernel_sigma_mm: float = Field(1.0, gt=0, description="Position smoothing of the table, mm.")
@@ -132,6 +132,12 @@ class ShadingSettings(BaseModel):
     ring_stride: int = Field(4, ge=1, le=16, description="With ring_targets 'fem': one pixel in "
                              "this many along each axis takes part (a ring pixel weighs "
                              "1 / ring_stride^2 of a contact pixel).")
+    prior: Literal["colour-polynomial", "image-mean"] = Field(
+        "colour-polynomial", description="What a table entry with few samples falls back to: "
+        "'colour-polynomial' (a polynomial in colour whose coefficients vary quadratically over "
+        "the image, fitted to all presses: keeps each place's colour-to-slope relation, which "
+        "point-like LEDs beside the gel make position-dependent) or 'image-mean' (the colour "
+        "bin's mean over the whole image).")
 
 
 class FemSettings(BaseModel):

@@ -450,10 +450,19 @@ def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii:
     return out
 
 
+def shading_fit_config(settings):
+    """The :class:`~calibration.shading.fit.ShadingFitConfig` of the wizard's shading settings."""
+    from calibration.shading.fit import ShadingFitConfig
+
+    return ShadingFitConfig(bins=settings.bins, node_spacing_mm=settings.node_spacing_mm,
+                            kernel_sigma_mm=settings.kernel_sigma_mm,
+                            ring_stride=settings.ring_stride, prior_model=settings.prior)
+
+
 def step_shading(ctx: Context) -> Outcome:
     """Fit the shading model on the presses; cross-validate it; show depth vs the sphere."""
     from calibration.shading.evaluate import cross_validate, fit_sphere, summarise
-    from calibration.shading.fit import ShadingFitConfig, fit_shading
+    from calibration.shading.fit import fit_shading
     from calibration.wizard.figures import cross_validation_figure, shading_figure
     from tactile_deploy.imaging.shading import DepthFromShading, save_shading
 
@@ -462,9 +471,7 @@ def step_shading(ctx: Context) -> Outcome:
     camera = load_camera(ctx.work)
     pitch = camera.grid.pitch_x_mm
     radius = cfg.presses.ball_radius_mm
-    fit_cfg = ShadingFitConfig(bins=cfg.shading.bins, node_spacing_mm=cfg.shading.node_spacing_mm,
-                               kernel_sigma_mm=cfg.shading.kernel_sigma_mm,
-                               ring_stride=cfg.shading.ring_stride)
+    fit_cfg = shading_fit_config(cfg.shading)
     if cfg.shading.ring_targets == "fem":
         ctx.ui.say("shading: the ball presses solved by the FEM of the pad (targets around the "
                    "contacts; about 20 s the first time)")
@@ -481,7 +488,8 @@ def step_shading(ctx: Context) -> Outcome:
                "in-sample sphere residual (um)": fit.model.header.fit_metrics[
                    "in_sample_sphere_rms_um"],
                "colour model residual (grey)": fit.colour_model_rms_grey,
-               "depth weight x / y": f"{fit.model.header.poisson_weight_x:.3g} / 1"}
+               "depth weight x / y": f"{fit.model.header.poisson_weight_x:.3g} / 1",
+               "table fallback": cfg.shading.prior}
     figures, notes = [], []
     folds = min(cfg.shading.folds, len(presses))
     if folds >= 2:
