@@ -15,13 +15,23 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("torch")
+torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
 from typer.testing import CliRunner  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 STEP = ROOT / "exported" / "gelslim_mesh_adapt"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """One torch thread: on a shared 2-core machine two OpenMP threads stall behind other
+    processes (the same steps measured 0.7 s with one thread, 2.5-20 s with two)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture()
@@ -45,7 +55,7 @@ def _adapt(folder, *extra):
     from tactile_deploy.cli.main import app
 
     return CliRunner().invoke(app, ["adapt", "--sensor", str(folder), "--source", "demo", "--batch", "8",
-                                    "--step", str(STEP), *extra])
+                                    "--step", str(STEP), "--threads", "1", *extra])
 
 
 def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
@@ -143,7 +153,7 @@ def test_device_benchmark_runs_with_only_torch_numpy_onnx_onnxruntime_pydantic(t
         for m in {blocked!r}:
             sys.modules[m] = None
         sys.argv = ["bench_adapt_device.py", "--device", "cpu", "--out", {str(tmp_path / "r.json")!r},
-                    "--steps", "2", "--repeat", "1", "--frames", "10", "--batch", "4"]
+                    "--steps", "2", "--repeat", "1", "--frames", "10", "--batch", "4", "--threads", "1"]
         runpy.run_path({str(ROOT / "bench" / "bench_adapt_device.py")!r}, run_name="__main__")
         """)
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
@@ -159,6 +169,6 @@ def test_benchmark_runs_at_small_settings(capsys):
         from bench.bench_adapt import main
     finally:
         sys.path.remove(str(ROOT))
-    assert main(["--small", "--no-write"]) == 0
+    assert main(["--small", "--no-write", "--threads", "1"]) == 0
     out = capsys.readouterr().out
     assert "steps/s" in out and "adapt on 24 frames" in out

@@ -24,6 +24,16 @@ TINY = {
 }
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """One torch thread: on a shared 2-core machine two OpenMP threads stall behind other
+    processes (the same steps measured 0.7 s with one thread, 2.5-20 s with two)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A small untrained predictor, its bundle, its fp32 ONNX model and its exported adaptation
@@ -310,6 +320,8 @@ def test_runtime_adapts_without_the_training_package(tiny, tmp_path):
         import sys
         sys.modules["training"] = None
         import numpy as np
+        import torch
+        torch.set_num_threads(1)
         from tactile_deploy.adapt.step import AdaptSettings, StepProgram, adapt, vae_filter
         from tactile_deploy.adapt.weights import write_adapted_onnx
         step = StepProgram.load({str(tiny["step"])!r})
