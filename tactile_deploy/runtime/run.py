@@ -160,7 +160,8 @@ class Runner:
         self._last_status = 0.0
         self._last_preview = -1e18
         self._t0 = time.monotonic()
-        self._recent: deque[float] = deque()      # frame times of the last 2 s (fps)
+        # frame times of the last 2 s, at most 256 frames (fps); bounded so memory does not follow the frame rate
+        self._recent: deque[float] = deque(maxlen=256)
         self._csv = None
         self._csv_tmp = None
         self._last = None
