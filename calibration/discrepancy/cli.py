@@ -43,8 +43,7 @@ def discrepancy_command(
     from calibration.discrepancy.measured import MeasuredDataError, load_measured
     from calibration.discrepancy.verdict import verdict_text
     from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
-    from tactile_deploy.cli.common import console, err_console, fail, prepare_simulator, \
-        progress_bar
+    from tactile_deploy.cli.common import err_console, fail, prepare_simulator, progress_bar
     from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
     from tactile_deploy.sensors.config import SensorConfigError
     from tactile_deploy.sensors.virtual import VirtualSensor
@@ -77,7 +76,7 @@ def discrepancy_command(
     if json_output:
         typer.echo(v.to_json(), nl=False)
     else:
-        console.print(verdict_text(v), highlight=False, markup=False)
+        typer.echo(verdict_text(v))
     if report is not None:
         from calibration.discrepancy.report import write_report
 
