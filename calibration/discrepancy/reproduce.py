@@ -11,6 +11,7 @@ gap.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -20,13 +21,28 @@ from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.sensors.config import EffectSpec
 from tactile_deploy.sensors.virtual import VirtualSensor
 
-#: Indenters whose depth map does not change when they turn about z.
-ROUND_PREFIXES = ("sphere", "analytic", "flat_punch", "ring", "torus", "cone")
+#: Largest change of a round indenter's intrusion when it turns (the facets of meshed
+#: spheres and punches), mm, and the share of footprint points whose contact may change.
+ROUND_TOLERANCE_MM = 5e-3
+ROUND_OUTLINE_SHARE = 0.05
 
 
+@functools.lru_cache(maxsize=64)
 def is_round(name: str) -> bool:
-    """Whether the library indenter ``name`` is a body of revolution about z."""
-    return name.startswith(ROUND_PREFIXES) or name in ("cylinder", "coin")
+    """Whether indenter ``name`` is a body of revolution about z up to its facets: turned by 13
+    degrees, its intrusion over a polar grid of its footprint changes by less than
+    ``ROUND_TOLERANCE_MM`` and the footprint's outline by less than ``ROUND_OUTLINE_SHARE`` of
+    the points."""
+    ind = get_indenter(name)
+    r = np.linspace(0.0, ind.footprint_radius_mm, 25)
+    a = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
+    pts = np.stack([np.outer(r, np.cos(a)).ravel(), np.outer(r, np.sin(a)).ravel()], axis=1)
+    d0 = np.asarray(ind.intrusion_mm(pts, ContactPose(depth_mm=1.0)), np.float64)
+    d1 = np.asarray(ind.intrusion_mm(pts, ContactPose(theta_deg=13.0, depth_mm=1.0)), np.float64)
+    outline = np.mean(np.isfinite(d0) != np.isfinite(d1))
+    top = np.isfinite(d0) & np.isfinite(d1) & ((d0 > 0) | (d1 > 0))
+    return bool(outline < ROUND_OUTLINE_SHARE
+                and np.all(np.abs(d0[top] - d1[top]) < ROUND_TOLERANCE_MM))
 
 
 class CachedIndenter:
@@ -98,8 +114,10 @@ class ContactReproducer:
         """The contact that best reproduces ``measured_mm`` (128, 128) mm with this sensor.
 
         Start: the depth-weighted centroid of the maximum-displacement region and the map's
-        largest depth (the best of 24 angles for indenters that are not round); then x, y,
-        depth (and theta) by least squares on the pad pixels' depth gap.
+        largest depth (the best of 24 angles for indenters that are not round); then a grid of
+        positions (+-0.6 mm), least squares on x, y, depth and theta over the pad pixels' depth
+        gap, and a simplex polish. Theta stays free for round indenters too: their facets
+        switch nodes of the 1 mm mesh in and out of contact.
         """
         round_shape = is_round(indenter)
         mask = self.pad_mask
@@ -129,15 +147,30 @@ class ContactReproducer:
             start = best[1]
 
         def pose_of(p):
-            theta = start.theta_deg if round_shape else float(p[3])
-            return ContactPose(x_mm=float(p[0]), y_mm=float(p[1]), theta_deg=theta,
+            return ContactPose(x_mm=float(p[0]), y_mm=float(p[1]), theta_deg=float(p[3]),
                                depth_mm=max(float(p[2]), 1e-4))
 
-        p0 = [start.x_mm, start.y_mm, start.depth_mm] + ([] if round_shape else [start.theta_deg])
-        scale = [0.3, 0.3, 0.05] + ([] if round_shape else [5.0])
+        # The gap is piecewise smooth (a 1 mm mesh; sharp indenter edges switch nodes in and
+        # out of contact): a coarse grid of positions, least squares, then a simplex polish.
+        best = None
+        for dx in np.linspace(-0.6, 0.6, 7):
+            for dy in np.linspace(-0.6, 0.6, 7):
+                p = start.model_copy(update={"x_mm": start.x_mm + dx, "y_mm": start.y_mm + dy})
+                cost = float(np.sum(gap(p) ** 2))
+                if best is None or cost < best[0]:
+                    best = (cost, p)
+        start = best[1]
+        p0 = [start.x_mm, start.y_mm, start.depth_mm, start.theta_deg]
+        scale = [0.3, 0.3, 0.05, 5.0]
         sol = optimize.least_squares(lambda p: gap(pose_of(p)), p0, x_scale=scale,
                                      diff_step=1e-2, max_nfev=80)
-        return pose_of(sol.x)
+        step = np.array([0.03, 0.03, 0.005, 1.0])
+        simplex = np.vstack([sol.x, sol.x + np.diag(step)])
+        polish = optimize.minimize(lambda p: float(np.sum(gap(pose_of(p)) ** 2)), sol.x,
+                                   method="Nelder-Mead",
+                                   options={"initial_simplex": simplex, "xatol": 1e-4,
+                                            "fatol": 1e-12, "maxfev": 200})
+        return pose_of(polish.x if polish.fun <= 2.0 * sol.cost else sol.x)
 
     def pose_jacobian(self, indenter: str, pose: ContactPose, pixels: np.ndarray) -> np.ndarray:
         """Change of the map at flat ``pixels`` per unit change of the contact's x, y, depth

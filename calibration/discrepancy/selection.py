@@ -330,7 +330,30 @@ def _best_pair(tables, stats, fitters, folds, best, names, results, sigma2, thre
         if rise > max(threshold, PAIR_MIN_SHARE * excess_units) and (
                 out is None or rise > out["rise"]):
             out = {"second": nm, "gain": gain, "rise": rise}
+    if out is not None:
+        out["coords"] = _pair_fit(fitters[best], fitters[out["second"]], stats.blocks[best],
+                                  stats.blocks[out["second"]], stats,
+                                  np.ones(len(stats.proj), bool))
     return out
+
+
+def _pair_fit(fa: TableFit, fb: TableFit, ba: slice, bb: slice, stats, train):
+    """Coordinates ``(phi_a, phi_b)`` of the additive two-candidate model fitted on ``train``
+    (alternating fits, each candidate given the other's change)."""
+    gram, proj = stats.gram, stats.proj
+    Aaa = gram[train][:, ba, ba].sum(0)
+    Abb = gram[train][:, bb, bb].sum(0)
+    Aab = gram[train][:, ba, bb].sum(0)
+    pa, pb = proj[train][:, ba].sum(0), proj[train][:, bb].sum(0)
+    phi_a = fa.fit(Aaa, pa, polish=False)[0]
+    phi_b = fb.fit(Abb, pb, polish=False)[0]
+    for k in range(6):
+        polish = k == 5
+        wa = fa.table.weights(phi_a)[0]
+        phi_b = fb.fit(Abb, pb - Aab.T @ wa, polish)[0]
+        wb = fb.table.weights(phi_b)[0]
+        phi_a = fa.fit(Aaa, pa - Aab @ wb, polish)[0]
+    return phi_a, phi_b
 
 
 def _pair_cv(fa: TableFit, fb: TableFit, ba: slice, bb: slice, stats, folds) -> np.ndarray:
@@ -338,16 +361,8 @@ def _pair_cv(fa: TableFit, fb: TableFit, ba: slice, bb: slice, stats, folds) -> 
     gram, proj = stats.gram, stats.proj
     red = np.zeros(len(proj))
     for test in folds:
-        train = ~test
-        Aaa = gram[train][:, ba, ba].sum(0)
-        Abb = gram[train][:, bb, bb].sum(0)
-        Aab = gram[train][:, ba, bb].sum(0)
-        pa, pb = proj[train][:, ba].sum(0), proj[train][:, bb].sum(0)
-        wa = fa.table.weights(fa.fit(Aaa, pa, polish=False)[0])[0]
-        wb = np.zeros(len(pb))
-        for _ in range(4):
-            wb = fb.table.weights(fb.fit(Abb, pb - Aab.T @ wa, polish=False)[0])[0]
-            wa = fa.table.weights(fa.fit(Aaa, pa - Aab @ wb, polish=False)[0])[0]
+        phi_a, phi_b = _pair_fit(fa, fb, ba, bb, stats, ~test)
+        wa, wb = fa.table.weights(phi_a)[0], fb.table.weights(phi_b)[0]
         w = np.zeros(proj.shape[1])
         w[ba] += wa
         w[bb] += wb
