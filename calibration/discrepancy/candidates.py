@@ -40,7 +40,9 @@ class Candidate:
     coordinate the (lower, upper) range a fit may reach, from the current value. route : "sensor"
     or "view". needs_commanded : the effect moves the contact itself (not testable when contacts
     are estimated from the maps). needs_non_round : only indenters that are not bodies of
-    revolution show it. signature : what it does to a depth map (for the report).
+    revolution show it. signature : what it does to a depth map (for the report). nodes :
+    tabulated values of a single coordinate (odd; more than 3 for responses that change shape
+    quickly: interpolation then uses the 3 nearest).
     """
 
     effect: str
@@ -51,6 +53,7 @@ class Candidate:
     needs_commanded: bool = False
     needs_non_round: bool = False
     signature: str = ""
+    nodes: int = 3
 
     @property
     def name(self) -> str:
@@ -118,6 +121,10 @@ class Candidate:
             dn, up = self.node_offsets[k]
             if c + dn < lo - 1e-12:
                 nodes = np.array([c, c + up / 2, c + up])
+            elif self.nodes > 3 and len(self.coords) == 1:
+                half = self.nodes // 2
+                nodes = np.concatenate([c + dn * np.arange(half, 0, -1) / half, [c],
+                                        c + up * np.arange(1, half + 1) / half])
             else:
                 nodes = np.array([c + dn, c, c + up])
             nodes = np.clip(nodes, lo, hi)
@@ -151,8 +158,8 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("position_offset", ("dx_mm", "dy_mm"), ((-0.3, 0.3),) * 2, ((-0.5, 0.5),) * 2,
               needs_commanded=True,
               signature="a dipole across every contact, one direction for all"),
-    Candidate("rotation_offset", ("dtheta_deg",), ((-5.0, 5.0),), ((-8.0, 8.0),),
-              needs_commanded=True, needs_non_round=True,
+    Candidate("rotation_offset", ("dtheta_deg",), ((-6.0, 6.0),), ((-6.0, 6.0),),
+              needs_commanded=True, needs_non_round=True, nodes=7,
               signature="edges and corners of non-round indenters turned by one angle"),
     Candidate("tilt", ("slope_x", "slope_y"), ((-T2, T2),) * 2, ((-T3, T3),) * 2,
               signature="a plane across each contact (one side deeper), slope the same for all"),

@@ -255,18 +255,20 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
     lookalikes: list[str] = []
     pair = None
     if best is not None:
+        pair = _best_pair(tables, stats, fitters, folds, best, names, results, sigma2, threshold,
+                          excess * n_pix)
+        # a look-alike explains the same structure as the best: about as well, and adding
+        # nothing to it (a candidate that adds is a second effect, not an alternative)
         jb = names.index(best)
         for nm in significant:
-            if nm != best and np.mean(boot[:, names.index(nm)] >= boot[:, jb]) >= \
-                    LOOKALIKE_PROBABILITY:
+            if nm != best and (pair is None or nm != pair["second"]) and \
+                    np.mean(boot[:, names.index(nm)] >= boot[:, jb]) >= LOOKALIKE_PROBABILITY:
                 lookalikes.append(nm)
         _intervals(tables, stats, results[best], fitters[best], counts, inverse,
                    param_bootstrap)
         for nm in lookalikes:
             _intervals(tables, stats, results[nm], fitters[nm], counts, inverse,
                        param_bootstrap)
-        pair = _best_pair(tables, stats, fitters, folds, best, names, results, sigma2, threshold,
-                          excess * n_pix)
     order = [t.name for t in tables.tables]
     return Selection([results[nm] for nm in order], noise, folds, threshold, null, excess,
                      excess_z, structure, energy, n_pix, best, lookalikes, pair)

@@ -12,6 +12,7 @@ found (a draw at 1 % of the range is not).
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 
@@ -47,7 +48,7 @@ def random_contacts(n: int, seed: int, radius_mm: float = 6.0,
 
 def draw_hidden(effect: str, seed: int, floor: float = 0.3) -> dict[str, float]:
     """Parameters of ``effect`` drawn from its realistic range, away from the null value."""
-    rng = np.random.default_rng([seed, 0x68696464])
+    rng = np.random.default_rng([seed, 0x68696464, zlib.crc32(effect.encode())])
     cls = effect_class(effect)
     ranges = {**cls.realistic_range, **HIDDEN_RANGES.get(effect, {})}
     if effect == "tilt":
@@ -61,13 +62,13 @@ def draw_hidden(effect: str, seed: int, floor: float = 0.3) -> dict[str, float]:
     out = {}
     for name, (lo, hi) in ranges.items():
         null = cls.Params.model_fields[name].default
-        if lo < null < hi:
+        if lo < null < hi:  # two-sided: a random side, 30-100 % of the way to its end
             end = hi if rng.uniform() < 0.5 else lo
             out[name] = float(null + (end - null) * rng.uniform(floor, 1.0))
-        elif null <= lo:
-            out[name] = float(rng.uniform(lo + floor * (hi - lo) if lo == null else lo, hi))
-        else:
-            out[name] = float(rng.uniform(lo, hi - floor * (hi - lo)))
+        elif null == lo:  # one-sided from the null value
+            out[name] = float(lo + (hi - lo) * rng.uniform(floor, 1.0))
+        else:  # a range away from the null value
+            out[name] = float(rng.uniform(lo, hi))
     return out
 
 

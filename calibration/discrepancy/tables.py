@@ -180,7 +180,7 @@ def tabulate(repro: ContactReproducer, contacts: list[Contact],
 
     raw = {cand.name: [] for cand in candidates}
     usable = {cand.name: np.ones(n, bool) for cand in candidates}
-    forces = {cand.name: np.zeros((n, 3 ** len(cand.coords))) for cand in candidates}
+    forces = {plan[0].name: np.zeros((n, len(plan[5]))) for plan in plans}
     rois = []
     for i, c in enumerate(contacts):
         changed = np.abs(base[i]) > ROI_THRESHOLD_MM

@@ -23,6 +23,7 @@ BENCHMARKS = {
     "optics": "bench_optics.py",
     "predictor": "bench_predictor.py",
     "runtime": "bench_runtime.py",
+    "discrepancy": "bench_discrepancy.py",
 }
 
 
