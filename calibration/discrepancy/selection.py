@@ -17,7 +17,8 @@ Data flow of :func:`select_effect`::
 
 Gains are ``(SSE_null - SSE_candidate) / sigma^2`` summed over held-out samples: twice the
 held-out log-likelihood ratio under white Gaussian noise. A candidate is *significant* when its
-gain exceeds the null threshold and its bootstrap interval excludes 0.
+gain exceeds the null threshold, its bootstrap interval does not reach below 0 and at least two
+contacts gain.
 """
 
 from __future__ import annotations
@@ -248,7 +249,11 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
     for nm in names:
         r = results[nm]
         r.explained = float(r.gain / (excess * n_pix)) if excess > 0 else 0.0
-        r.significant = bool(r.gain > threshold and r.gain_interval[0] > 0)
+        # above the null, never below 0 on resampled contacts (0: resamples without a contact
+        # that shows it, e.g. no non-round indenter), and gained on at least 2 contacts
+        per_group = np.bincount(inverse, weights=r.heldout, minlength=len(labels))
+        r.significant = bool(r.gain > threshold and r.gain_interval[0] >= 0
+                             and np.sum(per_group > 0) >= 2)
 
     significant = [nm for nm in names if results[nm].significant]
     best = max(significant, key=lambda nm: results[nm].gain) if significant else None
@@ -302,9 +307,12 @@ def _intervals(tables, stats, result: CandidateStats, fitter: TableFit, counts, 
     A_all = stats.gram[:, blk, blk]
     b_all = stats.proj[:, blk]
     t = fitter.table
+    informative = np.einsum("nii->n", A_all) > 0
     draws = []
     for c in counts[:replicates]:
         w = c[inverse].astype(np.float64)
+        if not np.any(w[informative] > 0):  # no contact that shows the effect
+            continue
         phi, _ = fitter.fit(np.einsum("n,nij->ij", w, A_all), w @ b_all)
         draws.append(t.params(phi))
     for key in t.candidate.fitted_params:

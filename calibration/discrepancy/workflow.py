@@ -300,9 +300,12 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     labels, inverse = np.unique(measured.contact_id, return_inverse=True)
     rng = np.random.default_rng([opts.seed, 0x76657269])
     draws = []
+    informative = np.einsum("nii->n", A) > 0
     for c in rng.multinomial(len(labels), np.full(len(labels), 1.0 / len(labels)),
                              size=opts.param_bootstrap):
         w = c[inverse].astype(np.float64)
+        if not np.any(w[informative] > 0):  # no contact that shows the effect
+            continue
         phi, _ = fitter.fit(np.einsum("n,nij->ij", w, A), w @ b)
         draws.append(table.params(phi))
     intervals = {}
