@@ -33,6 +33,8 @@ def discrepancy_command(
     folds: int = typer.Option(5, min=2, help="Folds of the cross-validation by contact."),
     null_replicates: int = typer.Option(200, min=20, help="Effect-free replicates of the null."),
     seed: int = typer.Option(0, min=0, help="Seed of the folds, null and bootstrap."),
+    workers: int = typer.Option(2, min=1, help="Processes that simulate the contacts' "
+                                "responses (the machine's cores)."),
 ) -> None:
     """Compare measured contacts with the sensor model: name the missing effect and its size,
     or say that nothing is missing, or that something is that the library cannot name."""
@@ -66,7 +68,7 @@ def discrepancy_command(
     virtual = VirtualSensor(config)
     prepare_simulator(virtual.simulator)
     opts = DiscrepancyOptions(folds=folds, null_replicates=null_replicates, seed=seed,
-                              candidates=names, plugin=plugin)
+                              candidates=names, plugin=plugin, workers=workers)
     try:
         result = find_discrepancy(virtual, data, opts,
                                   progress=lambda d, n: progress_bar(d, n, "contacts"))

@@ -3,7 +3,7 @@
     python -m calibration.discrepancy.figure [--out docs/img/discrepancy] [--contacts 40]
 
 The shipped virtual sensor ``gelslim1`` is the model; "measured" presses come from the same
-sensor with large-strain stiffening (``hyperelastic``, strength 0.9) that the model lacks.
+sensor with a domed gel (``dome``, 0.3 mm sag at the rim) that the model lacks.
 The workflow runs on them (report figures into ``--out``), the effect it finds is applied to a
 copy of the model, and the workflow runs again on the same data with the new model. Both
 verdicts are written as text beside the figures.
@@ -22,6 +22,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "img" / "discrepancy")
     parser.add_argument("--contacts", type=int, default=40)
+    parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
 
     from calibration.discrepancy.apply import apply_effect
@@ -29,7 +30,7 @@ def main(argv=None) -> None:
     from calibration.discrepancy.report import write_report
     from calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
     from calibration.discrepancy.verdict import verdict_text
-    from calibration.discrepancy.workflow import find_discrepancy
+    from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
     from tactile_deploy.atomic import write_text
     from tactile_deploy.sensors import load_sensor
     from tactile_deploy.sensors.config import EffectSpec, load_sensor_config
@@ -37,18 +38,19 @@ def main(argv=None) -> None:
 
     sensor = load_sensor("gelslim1")
     contacts = random_contacts(args.contacts, 11, radius_mm=8.0, depth_range_mm=(0.3, 1.0))
-    hidden = EffectSpec(name="hyperelastic", params={"strength": 0.9})
+    hidden = EffectSpec(name="dome", params={"height_mm": 0.3})
     data = hidden_effect_data(sensor, [hidden], contacts, 0.005, 11)
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         save_measured(Path(tmp) / "presses.npz", data)
-        before = find_discrepancy(sensor, data)
+        opts = DiscrepancyOptions(workers=args.workers)
+        before = find_discrepancy(sensor, data, opts)
         write_report(before, args.out)
         (args.out / "report.md").unlink()
         applied = apply_effect("gelslim1", sensor.config, before.verification.spec,
                                {"example": True}, Path(tmp))
         updated = VirtualSensor(load_sensor_config(applied.path), simulator=sensor.simulator)
-        after = find_discrepancy(updated, data)
+        after = find_discrepancy(updated, data, opts)
     write_text(args.out / "verdict_before.txt", verdict_text(before.verdict) + "\n")
     write_text(args.out / "verdict_after.txt", verdict_text(after.verdict) + "\n")
     print(verdict_text(before.verdict))

@@ -149,17 +149,9 @@ class ResponseTables:
         return values - (values @ q) @ q.T
 
 
-def tabulate(repro: ContactReproducer, contacts: list[Contact],
-             candidates: list[Candidate], progress=None) -> ResponseTables:
-    """Simulate the base and every candidate's tabulated values for every contact.
-
-    progress(k) is called after each contact.
-    """
-    n = len(contacts)
-    base = np.zeros((n, 128, 128))
-    base_force = np.zeros(n)
-    for i, c in enumerate(contacts):
-        base[i], base_force[i] = repro.depth_map(c.indenter, c.pose)
+def _plans(repro: ContactReproducer, candidates: list[Candidate]):
+    """Per candidate: (candidate, current params, centre, axes, node coords, specs, view warps
+    or None, which node is the current value)."""
     sensor_effects = repro.sensor.config.effects
     nu0 = repro.sensor.simulator.material.nu
     limits = {"delta_nu": (-nu0, NU_MAX_VALIDATED - nu0)}
@@ -177,47 +169,90 @@ def tabulate(repro: ContactReproducer, contacts: list[Contact],
             warps = [ViewWarp(cal, repro.variant(s).optics.camera, repro.camera) for s in specs]
         is_centre = np.all(np.isclose(node_coords, centre[None, :], atol=1e-12), axis=1)
         plans.append((cand, current, centre, axes, node_coords, specs, warps, is_centre))
+    return plans
 
-    raw = {cand.name: [] for cand in candidates}
-    usable = {cand.name: np.ones(n, bool) for cand in candidates}
-    forces = {plan[0].name: np.zeros((n, len(plan[5]))) for plan in plans}
-    rois = []
-    for i, c in enumerate(contacts):
-        changed = np.abs(base[i]) > ROI_THRESHOLD_MM
-        per_cand = {}
-        for cand, current, centre, axes, node_coords, specs, warps, is_centre in plans:
-            m = len(specs)
-            maps = np.repeat(base[i][None], m, axis=0)
-            f = np.full(m, base_force[i])
-            skip = ((cand.needs_commanded and c.estimated)
-                    or (cand.needs_non_round and is_round(c.indenter)))
-            if not skip:
-                try:
-                    for k, spec in enumerate(specs):
-                        if is_centre[k]:
-                            continue
-                        if warps is not None:
-                            maps[k] = warps[k](base[i])
-                        else:
-                            maps[k], f[k] = repro.depth_map(c.indenter, c.pose,
-                                                            repro.variant(spec))
-                except TABULATION_ERRORS:
-                    usable[cand.name][i] = False
-                    maps[:] = base[i]
-                    f[:] = base_force[i]
-            else:
-                usable[cand.name][i] = not (cand.needs_commanded and c.estimated)
-            delta = maps - base[i][None]
-            changed |= np.any(np.abs(delta) > ROI_THRESHOLD_MM, axis=0)
-            per_cand[cand.name] = delta
-            forces[cand.name][i] = f
-        roi_mask = binary_dilation(changed, iterations=ROI_DILATE_PX) & repro.pad_mask
-        roi = np.flatnonzero(roi_mask)
-        rois.append(roi)
-        for name, delta in per_cand.items():
-            raw[name].append(delta.reshape(len(delta), -1)[:, roi].astype(np.float32))
-        if progress is not None:
-            progress(1)
+
+def _tabulate_contact(repro: ContactReproducer, c: Contact, plans) -> dict:
+    """Base map, ROI and every candidate's changes on it for one contact."""
+    base, base_force = repro.depth_map(c.indenter, c.pose)
+    changed = np.abs(base) > ROI_THRESHOLD_MM
+    per_cand, forces, usable = {}, {}, {}
+    for cand, current, centre, axes, node_coords, specs, warps, is_centre in plans:
+        m = len(specs)
+        maps = np.repeat(base[None], m, axis=0)
+        f = np.full(m, base_force)
+        ok = True
+        skip = ((cand.needs_commanded and c.estimated)
+                or (cand.needs_non_round and is_round(c.indenter)))
+        if not skip:
+            try:
+                for k, spec in enumerate(specs):
+                    if is_centre[k]:
+                        continue
+                    if warps is not None:
+                        maps[k] = warps[k](base)
+                    else:
+                        maps[k], f[k] = repro.depth_map(c.indenter, c.pose, repro.variant(spec))
+            except TABULATION_ERRORS:
+                ok = False
+                maps[:] = base
+                f[:] = base_force
+        else:
+            ok = not (cand.needs_commanded and c.estimated)
+        delta = maps - base[None]
+        changed |= np.any(np.abs(delta) > ROI_THRESHOLD_MM, axis=0)
+        per_cand[cand.name], forces[cand.name], usable[cand.name] = delta, f, ok
+    roi = np.flatnonzero(binary_dilation(changed, iterations=ROI_DILATE_PX) & repro.pad_mask)
+    deltas = {name: d.reshape(len(d), -1)[:, roi].astype(np.float32)
+              for name, d in per_cand.items()}
+    return {"base": base, "base_force": base_force, "roi": roi, "deltas": deltas,
+            "forces": forces, "usable": usable}
+
+
+_WORKER_STATE: dict = {}
+
+
+def _worker(i: int) -> dict:
+    from threadpoolctl import threadpool_limits
+
+    st = _WORKER_STATE
+    with threadpool_limits(1):
+        return _tabulate_contact(st["repro"], st["contacts"][i], st["plans"])
+
+
+def tabulate(repro: ContactReproducer, contacts: list[Contact], candidates: list[Candidate],
+             progress=None, workers: int = 1) -> ResponseTables:
+    """Simulate the base and every candidate's tabulated values for every contact.
+
+    progress(k) is called after each contact. workers > 1 splits the contacts over that many
+    forked processes (each one thread; the simulator's operators are shared copy-on-write).
+    """
+    n = len(contacts)
+    plans = _plans(repro, candidates)
+    if workers > 1 and n > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        repro.sensor.simulator.prepare()
+        _WORKER_STATE.update(repro=repro, contacts=contacts, plans=plans)
+        try:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+                per = []
+                for out in pool.map(_worker, range(n), chunksize=1):
+                    per.append(out)
+                    if progress is not None:
+                        progress(1)
+        finally:
+            _WORKER_STATE.clear()
+    else:
+        per = []
+        for c in contacts:
+            per.append(_tabulate_contact(repro, c, plans))
+            if progress is not None:
+                progress(1)
+    base = np.stack([p["base"] for p in per])
+    base_force = np.array([p["base_force"] for p in per])
+    rois = [p["roi"] for p in per]
 
     nuisance = []
     for i, c in enumerate(contacts):
@@ -231,8 +266,8 @@ def tabulate(repro: ContactReproducer, contacts: list[Contact],
 
     tables = []
     for cand, current, centre, axes, node_coords, specs, warps, is_centre in plans:
+        use = np.array([p["usable"][cand.name] for p in per], bool)
         note = ""
-        use = usable[cand.name]
         if cand.needs_commanded and not any(not c.estimated for c in contacts):
             note = ("not testable: it moves the contact itself, and every contact was estimated "
                     "from its map; give the commanded contacts")
@@ -241,8 +276,9 @@ def tabulate(repro: ContactReproducer, contacts: list[Contact],
                     "press a non-round indenter (e.g. cylinder_side, cube_edge)")
         elif not use.any():
             note = "not testable: its tabulated values could not be simulated for any contact"
-        tables.append(CandidateTable(cand, current, centre, axes, node_coords, raw[cand.name],
-                                     forces[cand.name], use, note))
+        tables.append(CandidateTable(cand, current, centre, axes, node_coords,
+                                     [p["deltas"][cand.name] for p in per],
+                                     np.stack([p["forces"][cand.name] for p in per]), use, note))
     return ResponseTables(contacts, base, base_force, rois, nuisance, tables)
 
 

@@ -60,7 +60,8 @@ class DiscrepancyOptions:
     """folds : K of the grouped cross-validation; null_replicates : effect-free replicates;
     bootstrap : resamples of contact groups (gains), param_bootstrap : refits (intervals);
     candidates : names to consider (None: the whole library); plugin : sensor plugin whose
-    imaging pipeline turns measured frames into depth (default: the sensor's name)."""
+    imaging pipeline turns measured frames into depth (default: the sensor's name); workers :
+    processes that tabulate the contacts' responses."""
 
     folds: int = 5
     null_replicates: int = 200
@@ -69,6 +70,7 @@ class DiscrepancyOptions:
     seed: int = 0
     candidates: tuple[str, ...] | None = None
     plugin: str | None = None
+    workers: int = 1
 
 
 @dataclass
@@ -165,7 +167,8 @@ def prepare_tables(sensor: VirtualSensor, measured: MeasuredData,
     depth, pipeline = measured_depth_maps(measured, opts.plugin, sensor.name)
     contacts, _ = reproduce_contacts(repro, measured, depth, progress)
     with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
-        tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance)
+        tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
+                          opts.workers)
     if pipeline is not None:
         image_base_maps(tables, sensor, repro, pipeline)
     return tables
@@ -184,7 +187,8 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
     timings["contacts"] = time.perf_counter() - t0
     if tables is None:
         with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
-            tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance)
+            tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
+                              opts.workers)
         if pipeline is not None:
             image_base_maps(tables, sensor, repro, pipeline)
     elif [c.key for c in tables.contacts] != [c.key for c in contacts]:
