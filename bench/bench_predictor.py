@@ -1,8 +1,9 @@
 """Image-to-mesh predictor: speed and accuracy of every export variant, one CPU thread.
 
-    python bench/bench_predictor.py [--run out/predictor/cpu_small] [--rounds 300]
+    python bench/bench_predictor.py [--bundle exported/gelslim_mesh.pt | --run RUN_DIR] [--rounds 300]
                                     [--variants naive,fused,lean,fused-int8,lean-int8]
-                                    [--json results.json] [--small]
+                                    [--json results.json] [--small] [--no-write]
+    (or: tactile-deploy bench predictor)
 
 For each variant of :mod:`training.export` (one ONNX graph: depth [N, 1, 128, 128] mm ->
 vertices, displacement [N, 5380, 3] mm and ood_score [N]) this measures, in one run:
@@ -18,6 +19,13 @@ vertices, displacement [N, 5380, 3] mm and ood_score [N]) this measures, in one 
 * with ``--ood-data`` (depth maps of novel indenters): the AUROC of ``ood_score`` separating the
   held-out maps from those (1 = perfect, 0.5 = chance);
 * the file size.
+
+Data: ``--run`` reads a training run's ``heldout.npz``; with ``--bundle`` (default: the committed
+``exported/gelslim_mesh.pt``) the held-out maps are fresh contacts of the model's training
+distribution (another seed, simulated on the CPU: ~15 s) and the OOD maps 256 contacts of the
+novel indenters (never trained on). The GPU figures (torch on an H100, ``bench/bench_predictor_cuda.py``,
+``bench/results/predictor_cuda_h100.json``) are quoted beside the CPU table. Results go to
+BENCHMARKS.md (section ``predictor``) unless ``--small`` or ``--no-write``.
 
 ``--small`` builds an untrained model of the default architecture (random weights, held-out maps
 from random presses of a disc) and runs two variants with few rounds: a check that the benchmark
@@ -87,7 +95,10 @@ def main(argv=None) -> int:
     from training.export import VARIANTS, DeployGraph, export_variant, make_session, run_session, torch_reference
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", default=str(ROOT / "out" / "predictor" / "cpu_small"))
+    ap.add_argument("--bundle", default=str(ROOT / "exported" / "gelslim_mesh.pt"), help="training bundle (model.pt)")
+    ap.add_argument("--run", help="a training run folder (model.pt, heldout.npz, config.json) instead of --bundle")
+    ap.add_argument("--n-heldout", type=int, default=512, help="fresh held-out contacts with --bundle")
+    ap.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     ap.add_argument("--rounds", type=int, default=300)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--ood-data", help="npz with depth_mm of out-of-distribution maps (novel indenters): adds the "
@@ -103,13 +114,26 @@ def main(argv=None) -> int:
         model, bundle, depth, true = _small_model()
         variants, rounds = ["lean", "lean-int8-fastood"], min(rounds, 20)
     else:
+        from training.config import TrainConfig
+        from training.data import fresh_contacts
         from training.train import load_bundle
 
-        run = Path(args.run)
-        model, bundle = load_bundle(run / "model.pt")
-        held = np.load(run / "heldout.npz")
-        depth = held["depth_mm"][:, None].astype(np.float32)
-        true = held["displacement_mm"]
+        if args.run:
+            run = Path(args.run)
+            model, bundle = load_bundle(run / "model.pt")
+            held = np.load(run / "heldout.npz")
+            depth = held["depth_mm"][:, None].astype(np.float32)
+            true = held["displacement_mm"]
+        else:
+            model, bundle = load_bundle(args.bundle)
+            spec = TrainConfig.model_validate(bundle["config"]).data.synthetic
+            held = fresh_contacts(spec, args.n_heldout, spec.seed + 1_000_000)
+            depth, true = held.depth_mm[:, None].astype(np.float32), held.displacement_mm
+            if not args.ood_data:
+                from tactile_deploy.indenters import list_indenters
+
+                novel = spec.model_copy(update={"indenters": tuple(list_indenters("novel")), "seed": 11})
+                args.ood_maps = fresh_contacts(novel, 256, 12).depth_mm[:, None].astype(np.float32)
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         ap.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
@@ -117,10 +141,11 @@ def main(argv=None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench_predictor_"))
     if args.small:
         calib = depth
-    else:  # the training maps the shipped export calibrates on, never the held-out ones
-        from training.export import _calibration_maps
+    else:  # maps of the training distribution, as the shipped export calibrates on; never the held-out ones
+        from training.config import TrainConfig
+        from training.export import calibration_maps
 
-        calib = _calibration_maps(Path(args.run), depth)
+        calib = calibration_maps(TrainConfig.model_validate(bundle["config"]), depth)
     sessions, sizes, export_s = {}, {}, {}
     for v in variants:
         t0 = time.perf_counter()
@@ -140,7 +165,7 @@ def main(argv=None) -> int:
     # -- accuracy -------------------------------------------------------------------------------
     k = len(depth)
     refs = {fam: torch_reference(model, fam, depth) for fam in ("coma", "lean")}
-    ood_maps = None
+    ood_maps = getattr(args, "ood_maps", None)
     if args.ood_data:
         ood_maps = np.load(args.ood_data)["depth_mm"][:, None].astype(np.float32)
     acc = {}
@@ -234,7 +259,28 @@ def main(argv=None) -> int:
             + (f"{r['ood_auroc']:.3f}" if r["ood_auroc"] is not None else "-")
             + " | " + (f"{r['file_mb']:.1f}" if r["file_mb"] else "-") + " |"
         )
+    gpu_path = ROOT / "bench" / "results" / "predictor_cuda_h100.json"
+    if gpu_path.exists():
+        gpu = json.loads(gpu_path.read_text())
+        lines += [
+            "",
+            f"GPU ({gpu['device_name']}, torch {gpu['torch']}; onnxruntime's CUDA provider is not in that machine's "
+            f"image): the trained torch modules, eager fp32 and replayed as a CUDA graph, {gpu['rounds']} calls, "
+            "CUDA events (`bench/bench_predictor_cuda.py`):",
+            "",
+            "| decoder | batch | eager p50 ms | CUDA graph p50 ms | graph vs eager | ms per mesh |",
+            "|---|---|---|---|---|---|",
+        ]
+        for g in gpu["rows"]:
+            lines.append(f"| {g['decoder']} | {g['batch']} | {g['eager_p50_ms']:.3f} | {g.get('graph_p50_ms', float('nan')):.3f} "
+                         f"| {g['eager_p50_ms'] / g.get('graph_p50_ms', float('nan')):.1f}x | {g['per_mesh_ms']:.4f} |")
     print("\n".join(lines))
+    if not args.small and not args.no_write:
+        from bench.report import machine_line, write_section
+
+        source = args.run or args.bundle
+        write_section("predictor", "## Image-to-mesh predictor (`tactile-deploy bench predictor`)\n\n"
+                      f"{machine_line()}; model {Path(source).name}.\n\n" + "\n".join(lines))
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "rounds": rounds, "n_heldout": k}, indent=1))
     return 0

@@ -105,8 +105,8 @@ def _fp32_twin(model_path: Path, meta: dict) -> Path | None:
 
 def torch_reference(model_path, bundle: Path | None = None):
     """The same network in torch (eager, fp32, one thread): ``(callable, description)``, or
-    ``(None, reason)``. The training bundle (``model.pt``) is ``bundle``, else the one among
-    ``out/predictor/*/model.pt`` of this checkout (where ``python -m training train`` writes)
+    ``(None, reason)``. The training bundle (``model.pt``) is ``bundle``, else the one committed
+    beside the model (``<model>.pt``) or among ``out/predictor/*/model.pt`` of this checkout
     whose torch module reproduces the model's fp32 ONNX twin (named by its model card) to
     1e-4 mm, or the ONNX model itself to 0.1 mm (int8) when there is no twin."""
     try:
@@ -131,7 +131,8 @@ def torch_reference(model_path, bundle: Path | None = None):
     probe[1, 0, 30:40, 80:100] = 0.8
     want = ort.InferenceSession(str(target), providers=["CPUExecutionProvider"]).run(
         ["displacement"], {"depth": probe})[0]
-    candidates = [bundle] if bundle is not None else sorted(
+    committed = [p for p in (Path(model_path).with_suffix(".pt"),) if p.is_file()]
+    candidates = [bundle] if bundle is not None else committed + sorted(
         (ROOT / "out" / "predictor").glob("*/model.pt"), key=lambda p: -p.stat().st_mtime)
     for path in candidates:
         try:

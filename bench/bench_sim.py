@@ -90,12 +90,12 @@ def markdown(result: dict, gpu: dict | None) -> str:
     from bench.report import machine_line
 
     lines = [
-        "## Simulator throughput (`tactile-deploy bench sim`)",
+        "## Simulator throughput: image-mesh pairs per second (`tactile-deploy bench sim`)",
         "",
         f"CPU: {machine_line()}; {result['workers']} worker processes, {result['n_samples']} random "
         f"primitive contacts, {result['friction']} contact, {result['formulation']} tets.",
         "",
-        "| path | samples/s | vs baseline |",
+        "| path | pairs/s (one contact = depth map + mesh) | vs baseline |",
         "|---|---|---|",
         f"| per-sample sparse direct solve (baseline, 1 process) | {result['baseline_samples_per_s']:.3f} | 1x |",
         f"| Green's functions + exact active set (CPU, {result['workers']} processes) | "

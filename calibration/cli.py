@@ -1,4 +1,7 @@
-"""``tactile-deploy calibrate ...``: every calibration step as a plain command.
+"""``tactile-deploy calibrate ...``: the calibration wizard and every step as a plain command.
+
+    tactile-deploy calibrate --sensor NEW [--source SRC] [--rig PORT --gauge PORT] ...  (wizard)
+    tactile-deploy calibrate camera | make-board | shading | fem ...                     (steps)
 
 Registered with the ``tactile-deploy`` command through the ``tactile_deploy.cli`` entry-point
 group (see pyproject.toml), so the runtime package never imports ``calibration``.
@@ -9,11 +12,17 @@ from __future__ import annotations
 import typer
 
 from calibration.camera.cli import camera_app
+from calibration.fem_fit.cli import fem_app
 from calibration.shading.cli import shading_app
+from calibration.wizard.cli import calibrate_callback
 
 calibrate_app = typer.Typer(
-    help="Calibrate a sensor: camera mapping, shading model, FEM parameters.",
+    help="Calibrate a sensor: the wizard (--sensor NEW), or one step (camera mapping, shading "
+    "model, FEM parameters).",
+    invoke_without_command=True,
     no_args_is_help=True,
 )
+calibrate_app.callback()(calibrate_callback)  # `calibrate --sensor NEW ...`: the wizard
 calibrate_app.add_typer(camera_app)  # merges `camera` and `make-board` into `calibrate`
 calibrate_app.add_typer(shading_app)  # `calibrate shading`
+calibrate_app.add_typer(fem_app)  # `calibrate fem`

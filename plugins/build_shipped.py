@@ -1,37 +1,41 @@
-"""Build the shipped sensor plugins ``gelslim1`` and ``gelslim2`` from the virtual sensors.
+"""Build the shipped sensor plugins ``gelslim1`` and ``gelslim2``: the calibration wizard on the
+virtual sensors of the same names, plus a demo clip.
 
     python plugins/build_shipped.py [--only gelslim2] [--model exported/gelslim_mesh.onnx]
-                                    [--overwrite]
+                                    [--overwrite] [--work DIR]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
 
-The calibration wizard will make the same files from a real sensor; until then this script makes
-them from the shipped virtual sensors of the same names (``tactile_deploy.sensors``: the contact
-FEM of the pad, RGB optics, the unit's effects and noise). What is taken from the virtual sensor
-and what is calibrated:
+Each plugin is made by ``tactile-deploy calibrate`` (:func:`calibration.wizard.wizard.run_wizard`,
+docs/calibration.md), run non-interactively with the committed config ``plugins/wizard/NAME.json``
+on the virtual sensor ``NAME`` (``tactile_deploy.sensors``: the contact FEM of the pad, RGB
+optics, the unit's effects and noise) pressed by the simulated rig over pseudo-terminals, exactly
+as it calibrates a real sensor on a rig:
 
-* **Camera mapping**: the virtual camera's own lens and homography (a real sensor's comes from
-  ``tactile-deploy calibrate camera``). Its imaging grid is the largest box of whole model-grid
-  cells (+-17.5 mm, 128 x 128, 0.273 mm) that the camera sees, trimmed to fast transform sizes:
-  the GelSlim cameras see about 24 x 18 mm of the 35 mm pad (90 x 64 cells); the pipeline puts
-  that depth into the model grid and leaves the unseen cells at 0. (Half the pitch, 180 x 128
-  cells, was measured too: the same depth error on held-out presses, 3 x the imaging time.)
-* **Reference frame**: the mean of 16 noisy no-contact frames.
-* **Shading model**: fitted as on a real sensor (``calibration.shading.fit``) on 80 presses of a
-  3 mm ball at random places and depths in the view, rectified by the runtime's own stages; the
-  circles come from the ball centre the sensor reached and the FEM contact area (sensing nodes
-  within 10 um of the ball). 16 more presses are
-  held out: their depth error against the virtual sensor's true surface (area-averaged onto the
-  model grid) is recorded in the manifest's provenance.
-* **Noise reference**: the mean model-grid depth of 16 noisy no-contact frames (``subtract``).
-* **Material**: the E and nu the virtual sensor's FEM uses.
-* **Demo clip**: 60 frames (2 s at 30 fps) of an indenter pressing, sliding (and turning) and
-  lifting, stored as MJPEG (``demo.avi``, a few kB per frame); the depth error the compression
-  adds is recorded in the provenance.
-* **Model**: the family's ONNX model (``--model``), referenced by relative path and sha256; the
-  topology file is the pad's.
+* **reference** and **noise reference**: 16 no-contact frames averaged; their mean depth;
+* **camera mapping**: fitted from the pressed dot target (9 x 7 pins at 2.5 mm), and the imaging
+  grid (the largest box of whole model-grid cells the camera sees: 90 x 64 cells for the
+  GelSlim cameras);
+* **shading model**: fitted on 80 ball presses (3 mm ball, 0.3-0.9 mm deep) over the view,
+  cross-validated;
+* **material**: E from the rig's forces (nu fixed at 0.48), with the rig's depth zero error;
+* **model**: the family's ONNX model (``--model``), referenced by relative path and sha256
+  (``copy_model: false``: one copy in ``exported/`` for every shipped plugin); the topology file
+  is the pad's; the wizard's report is in ``calibration/`` (its pictures with a 256-colour
+  palette, to keep the plugin near 2 MB).
 
-Everything is seeded: the same code and sensors give the same plugins. An existing plugin is only
-replaced with ``--overwrite``.
+What this script adds to the wizard's folder:
+
+* **demo clip**: 60 frames (2 s at 30 fps) of an indenter pressing, sliding (and turning) and
+  lifting (:data:`DEMOS`), stored as MJPEG (``demo.avi``), replacing the wizard's clip of the
+  calibration presses; it is the plugin's default source, so ``tactile-deploy run --sensor
+  gelslim2`` works without a sensor. The depth error the compression adds is recorded;
+* **held-out check**: 16 new ball presses (places, depths and noise the wizard never saw) through
+  the plugin's own imaging pipeline against the virtual sensor's true surface on the model grid
+  (area-averaged), recorded in the manifest's ``provenance`` with the demo clip's depth error.
+
+Everything is seeded (the configs' ``presses.seed``, :data:`SEEDS`): the same code and sensors
+give the same plugins. The plugin is assembled beside its target (``plugins/.NAME-build``) and
+renamed into place after it validates; an existing plugin is only replaced with ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -40,7 +44,10 @@ import argparse
 import datetime as _dt
 import json
 import math
+import os
+import shutil
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,17 +59,12 @@ sys.path.insert(0, str(ROOT))
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_MODEL = ROOT / "exported" / "gelslim_mesh.onnx"
+#: The wizard config of each shipped plugin.
+WIZARD_CONFIGS = HERE / "wizard"
 BALL_RADIUS_MM = 3.0
 BALL_DEPTH_MM = (0.3, 0.9)
-N_CALIBRATION = 80
 N_HELD_OUT = 16
-#: Imaging grid pitch = model pitch / this (2 was measured: same accuracy, 3 x slower).
-PITCH_DIVISOR = 1
 N_DEMO = 60
-#: Shading fit settings (``calibration.shading.fit.ShadingFitConfig``): a coarser position grid
-#: and fewer colour bins than the defaults keep the table (and the plugin) to a few MB.
-SHADING_BINS = 32
-SHADING_NODE_SPACING_MM = 3.0
 
 
 @dataclass(frozen=True)
@@ -81,65 +83,8 @@ DEMOS = {
     "gelslim1": DemoMove("cross", (-4.0, 2.0), (4.0, -2.0), 0.6, (0.0, 45.0)),
     "gelslim2": DemoMove("sphere_r6", (-5.0, 2.5), (5.0, -2.0), 0.9),
 }
+#: Seeds of the held-out presses and the demo clip.
 SEEDS = {"gelslim1": 11, "gelslim2": 12}
-
-
-# ------------------------------------------------------------------------------------ geometry
-def imaging_grid(camera, divisor: int = PITCH_DIVISOR, margin_px: float = 2.0):
-    """The largest axis-aligned box of whole model-grid cells whose corners the camera sees
-    (``margin_px`` inside the image), trimmed to sizes with prime factors 2, 3 and 5 only (the
-    depth integration's sine transforms are ~1.5 x faster), as an OutputGrid at
-    ``model pitch / divisor``."""
-    from tactile_deploy.imaging.camera_mapping import OutputGrid, sensor_mm_to_pixels
-
-    g = OutputGrid()
-    xs = g.x_min_mm + np.arange(g.nx + 1) * g.pitch_x_mm
-    ys = g.y_max_mm - np.arange(g.ny + 1) * g.pitch_y_mm
-    cx, cy = np.meshgrid(xs, ys)
-    uv = sensor_mm_to_pixels(np.stack([cx.ravel(), cy.ravel()], 1), camera).reshape(*cx.shape, 2)
-    w, h = camera.image_size
-    seen = ((uv[..., 0] >= margin_px) & (uv[..., 0] <= w - 1 - margin_px)
-            & (uv[..., 1] >= margin_px) & (uv[..., 1] <= h - 1 - margin_px))
-    inside = seen[:-1, :-1] & seen[1:, :-1] & seen[:-1, 1:] & seen[1:, 1:]   # (ny, nx) cells
-    rows, cols = np.flatnonzero(inside.any(1)), np.flatnonzero(inside.any(0))
-    r0, r1, c0, c1 = rows[0], rows[-1], cols[0], cols[-1]
-    while not inside[r0:r1 + 1, c0:c1 + 1].all():      # shed the worst side (convex view)
-        bad = {"r0": (~inside[r0, c0:c1 + 1]).sum(), "r1": (~inside[r1, c0:c1 + 1]).sum(),
-               "c0": (~inside[r0:r1 + 1, c0]).sum(), "c1": (~inside[r0:r1 + 1, c1]).sum()}
-        side = max(bad, key=bad.get)
-        r0, r1, c0, c1 = (r0 + (side == "r0"), r1 - (side == "r1"), c0 + (side == "c0"),
-                          c1 - (side == "c1"))
-    # trim to cell counts whose prime factors are 2, 3, 5 (fast sine transforms), centred
-    for lo, hi, axis in (("r0", "r1", 0), ("c0", "c1", 1)):
-        a, b = (r0, r1) if axis == 0 else (c0, c1)
-        n = b - a + 1
-        keep = max(k for k in range(1, n + 1) if _smooth(k * divisor))
-        a += (n - keep) // 2
-        b = a + keep - 1
-        if axis == 0:
-            r0, r1 = a, b
-        else:
-            c0, c1 = a, b
-    return OutputGrid(x_min_mm=float(xs[c0]), x_max_mm=float(xs[c1 + 1]),
-                      y_min_mm=float(ys[r1 + 1]), y_max_mm=float(ys[r0]),
-                      nx=int(c1 - c0 + 1) * divisor, ny=int(r1 - r0 + 1) * divisor)
-
-
-def _smooth(n: int) -> bool:
-    """True when n has no prime factor above 5."""
-    for p in (2, 3, 5):
-        while n % p == 0:
-            n //= p
-    return n == 1
-
-
-def with_grid(camera, grid):
-    """The camera mapping with another output grid (validated)."""
-    from tactile_deploy.imaging.camera_mapping import CameraMapping
-
-    doc = json.loads(camera.model_dump_json())
-    doc["grid"] = grid.model_dump()
-    return CameraMapping.model_validate(doc)
 
 
 # ------------------------------------------------------------------------------------ presses
@@ -245,18 +190,81 @@ def demo_frames(sensor, move: DemoMove, seed: int, n: int = N_DEMO):
 
 
 # ------------------------------------------------------------------------------------ build
-def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
-    import cv2
+def run_wizard_on_virtual(name: str, out: Path, work: Path, model: Path) -> None:
+    """``tactile-deploy calibrate --sensor NAME --source virtual:NAME --rig simulated --yes
+    --config plugins/wizard/NAME.json --out OUT --work WORK --model MODEL --overwrite``."""
+    from calibration.wizard.config import load_wizard_config
+    from calibration.wizard.ui import AutoUI
+    from calibration.wizard.wizard import EXIT_OK, run_wizard
 
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import PressSet
-    from tactile_deploy.atomic import atomic_path
-    from tactile_deploy.imaging.shading import save_shading
-    from tactile_deploy.runtime.pipeline import ImagingPipeline, Rectifier, rectify_frame, resample_to_grid
-    from tactile_deploy.runtime.plugins import MANIFEST_NAME, validate_plugin, write_plugin
-    from tactile_deploy.runtime.predictor import MeshTopology
+    config = load_wizard_config(WIZARD_CONFIGS / f"{name}.json")
+    code = run_wizard(name, source=f"virtual:{name}", rig="simulated", gauge=None, config=config,
+                      out=out, work=work, ui=AutoUI(), overwrite=True, model=model)
+    if code != EXIT_OK:
+        raise SystemExit(f"the calibration wizard failed on virtual:{name} (exit code {code}); "
+                         f"its work folder is {work}")
+
+
+def held_out_errors(plugin, sensor, seed: int) -> dict:
+    """:func:`depth_errors_um` of :data:`N_HELD_OUT` new ball presses through the plugin's
+    imaging pipeline."""
+    from tactile_deploy.runtime.pipeline import ImagingPipeline
+
+    grid = plugin.manifest.camera.grid
+    raw, circ, true = ball_presses(sensor, grid, N_HELD_OUT, seed + 1000, Truth(sensor))
+    pipeline = ImagingPipeline.from_plugin(plugin)
+    centres = np.stack([grid.x_min_mm + (circ[:, 0] + 0.5) * grid.pitch_x_mm,
+                        grid.y_max_mm - (circ[:, 1] + 0.5) * grid.pitch_y_mm], 1)
+    return depth_errors_um([pipeline.frame_to_depth(f) for f in raw], true, centres,
+                           circ[:, 2] * grid.pitch_x_mm)
+
+
+def add_demo_clip(plugin, sensor, move: DemoMove, seed: int, path: Path) -> dict:
+    """Write the demo clip (MJPEG) to ``path``; returns its depth error and what the
+    compression adds (um), measured through the plugin's imaging pipeline."""
+    from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.sources.factory import open_clip
     from tactile_deploy.runtime.sources.video import write_video
+
+    pipeline = ImagingPipeline.from_plugin(plugin)
+    frames, true = demo_frames(sensor, move, seed)
+    depth = [pipeline.frame_to_depth(f) for f in frames]
+    deep = int(np.argmax(true.max(axis=(1, 2))))
+    write_video(path, frames, fps=sensor.config.fps, fourcc="MJPG")
+    with open_clip(path) as src:
+        decoded = np.stack([f.image for f in src])
+    codec = [np.sqrt(np.mean((pipeline.frame_to_depth(a) - d) ** 2)) * 1e3
+             for a, d in zip(decoded, depth)]
+    return {"rmse_um_worst": float(max(np.sqrt(np.mean((d - t) ** 2)) * 1e3
+                                       for d, t in zip(depth, true))),
+            "deepest_true_mm": float(true[deep].max()),
+            "deepest_estimated_mm": float(depth[deep].max()),
+            "codec_rmse_um_worst": float(max(codec))}
+
+
+def compact_report_pictures(folder: Path) -> None:
+    """Re-encode the report's PNG pictures (``folder``) with a 256-colour palette: about a third
+    of the size, keeping each shipped plugin near 2 MB."""
+    from PIL import Image
+
+    from tactile_deploy.atomic import atomic_path
+
+    for path in sorted(folder.glob("*.png")):
+        with Image.open(path) as im:
+            small = im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT,
+                                               dither=Image.Dither.NONE)
+        with atomic_path(path) as tmp:
+            small.save(tmp, format="PNG", optimize=True)
+
+
+def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | None = None) -> dict:
+    """Make the shipped plugin ``name`` in ``folder`` (see the module docstring)."""
+    from tactile_deploy.runtime.plugins import (
+        MANIFEST_NAME,
+        SensorPlugin,
+        validate_plugin,
+        write_plugin,
+    )
     from tactile_deploy.sensors import load_sensor
 
     if (folder / MANIFEST_NAME).exists() and not overwrite:
@@ -264,110 +272,70 @@ def build(name: str, folder: Path, model: Path, overwrite: bool) -> dict:
     if not model.is_file():
         raise SystemExit(f"the family model {model} does not exist: export it first "
                          "(python -m training export ...) or pass --model")
-    folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    seed = SEEDS[name]
-    sensor = load_sensor(name)
-    sensor.prepare()
-    grid = imaging_grid(sensor.optics.camera)
-    camera = with_grid(sensor.optics.camera, grid)
-    rectifier = Rectifier(camera)
+    # assembled beside the target: the model's relative path stays valid after the rename
+    staging = folder.parent / f".{folder.name}-build"
+    if staging.exists():
+        shutil.rmtree(staging)
+    with tempfile.TemporaryDirectory(prefix=f"{name}-calibration-") as tmp:
+        run_wizard_on_virtual(name, staging, work or Path(tmp) / "work", model)
+    try:
+        plugin = SensorPlugin.load(staging)
+        sensor = load_sensor(name)
+        sensor.prepare()
+        seed = SEEDS[name]
+        held = held_out_errors(plugin, sensor, seed)
+        move = DEMOS[name]
+        demo = add_demo_clip(plugin, sensor, move, seed, staging / "demo.avi")
+        compact_report_pictures(staging / "calibration")
 
-    def rectify(frame):
-        return resample_to_grid(rectify_frame(frame, rectifier), rectifier)
-
-    reference = sensor.record_reference(seed, n_average=16)
-    truth = Truth(sensor)
-
-    # shading: fit on N_CALIBRATION presses, evaluate on N_HELD_OUT others (new places, noise)
-    raw, circles, _ = ball_presses(sensor, grid, N_CALIBRATION, seed, truth)
-    train = PressSet(rectify(reference), np.stack([rectify(f) for f in raw]),
-                     [f"press_{i:03d}" for i in range(N_CALIBRATION)], circles)
-    from calibration.shading.fit import ShadingFitConfig
-
-    fit = fit_shading(train, BALL_RADIUS_MM, grid.pitch_x_mm,
-                      ShadingFitConfig(bins=SHADING_BINS, node_spacing_mm=SHADING_NODE_SPACING_MM))
-    save_shading(fit.model, folder / "shading.npz")
-    with atomic_path(folder / "reference.png") as tmp:
-        cv2.imwrite(str(tmp), cv2.cvtColor(reference, cv2.COLOR_RGB2BGR))
-    plain = ImagingPipeline(camera, fit.model, reference, None, "keep")
-    h_raw, h_circ, h_true = ball_presses(sensor, grid, N_HELD_OUT, seed + 1000, truth)
-    centres = np.stack([grid.x_min_mm + (h_circ[:, 0] + 0.5) * grid.pitch_x_mm,
-                        grid.y_max_mm - (h_circ[:, 1] + 0.5) * grid.pitch_y_mm], 1)
-    held_err = depth_errors_um([plain.frame_to_depth(f) for f in h_raw], h_true, centres,
-                               h_circ[:, 2] * grid.pitch_x_mm)
-
-    # noise reference: mean model-grid depth of 16 noisy no-contact frames
-    noise = np.mean([plain.frame_to_depth(sensor.reference_frame(np.random.default_rng([seed, 3, i])))
-                     for i in range(16)], axis=0)
-    np.save(folder / "noise_reference.npy", noise.astype(np.float32))
-
-    # demo clip (MJPEG) and the depth error its compression adds
-    move = DEMOS[name]
-    demo, demo_truth = demo_frames(sensor, move, seed)
-    demo_depth = [plain.frame_to_depth(f) for f in demo]
-    deep = int(np.argmax(demo_truth.max(axis=(1, 2))))
-    demo_err = {"rmse_um_worst": float(max(np.sqrt(np.mean((d - t) ** 2)) * 1e3
-                                           for d, t in zip(demo_depth, demo_truth))),
-                "deepest_true_mm": float(demo_truth[deep].max()),
-                "deepest_estimated_mm": float(demo_depth[deep].max())}
-    write_video(folder / "demo.avi", demo, fps=sensor.config.fps, fourcc="MJPG")
-    with open_clip(folder / "demo.avi") as src:
-        decoded = np.stack([f.image for f in src])
-    codec = [np.sqrt(np.mean((plain.frame_to_depth(a) - plain.frame_to_depth(b)) ** 2)) * 1e3
-             for a, b in zip(demo, decoded)]
-    topo = MeshTopology.from_pad()
-    topo.save(folder / "topology.npz")
-
-    mat = sensor.config.material
-    fields = {
-        "name": name,
-        "description": (sensor.config.description.split(":")[0].strip()
-                        + " (the virtual sensor of this name)"),
-        "family": {"name": "gelslim", "pad": sensor.config.pad, "pad_version": 1,
-                   "mesh_hash": topo.mesh_hash},
-        "camera": json.loads(camera.model_dump_json()),
-        "material": {"E_mpa": mat.E_mpa, "nu": mat.nu,
-                     "source": f"virtual sensor {name}: the E and nu of its FEM"},
-        "default_source": {"kind": "demo"},
-        "noise_handling": "subtract",
-        "provenance": {
-            "made_by": "plugins/build_shipped.py from the virtual sensor of the same name "
-                       "(the calibration wizard makes these files from a real sensor)",
+        m = plugin.manifest
+        fields = m.model_dump(mode="json", exclude=set(m.files()) | {"noise_reference"})
+        fields["noise_handling"] = m.noise_reference.handling
+        fields["default_source"] = {"kind": "demo"}
+        prov = dict(m.provenance)
+        prov.update({
+            "made_by": (f"tactile-deploy calibrate (the calibration wizard) on the virtual sensor "
+                        f"{name} with the simulated rig, config plugins/wizard/{name}.json, run by "
+                        "plugins/build_shipped.py, which adds the demo clip and the held-out "
+                        "check"),
             "date": _dt.date.today().isoformat(),
             "sensor": repr(sensor),
-            "imaging_grid": (f"{grid.nx} x {grid.ny} cells of {grid.pitch_x_mm:.4f} mm over x "
-                             f"[{grid.x_min_mm:g}, {grid.x_max_mm:g}], y [{grid.y_min_mm:g}, "
-                             f"{grid.y_max_mm:g}] mm (what the camera sees), {rectifier.supersample}"
-                             " x supersampled"),
-            "shading_fit": (f"{N_CALIBRATION} presses of a {BALL_RADIUS_MM:g} mm ball, depth "
-                            f"{BALL_DEPTH_MM[0]}-{BALL_DEPTH_MM[1]} mm; in-sample sphere RMS "
-                            f"{fit.model.header.fit_metrics.get('in_sample_sphere_rms_um', float('nan')):.1f} um"),
             "held_out_depth_error": (
-                f"{held_err['n']} presses against the true surface on the model grid: whole "
-                f"frame RMSE <= {held_err['whole_rmse_um_worst']:.1f} um, within 1.5 contact "
-                f"radii <= {held_err['near_rmse_um_worst']:.1f} um (mean "
-                f"{held_err['near_rmse_um_mean']:.1f}), peak <= {held_err['peak_error_um_worst']:.1f} um"),
+                f"{held['n']} new presses against the true surface on the model grid: whole "
+                f"frame RMSE <= {held['whole_rmse_um_worst']:.1f} um, within 1.5 contact radii "
+                f"<= {held['near_rmse_um_worst']:.1f} um (mean {held['near_rmse_um_mean']:.1f}), "
+                f"peak <= {held['peak_error_um_worst']:.1f} um"),
             "demo_clip": (f"{N_DEMO} frames, {move.indenter} pressed {move.depth_mm} mm, slid "
                           f"{move.start_mm} -> {move.end_mm} mm; MJPEG adds depth RMSE <= "
-                          f"{max(codec):.1f} um per frame"),
-            "demo_depth_error": (f"frame RMSE <= {demo_err['rmse_um_worst']:.1f} um; deepest "
-                                 f"frame {demo_err['deepest_estimated_mm']:.3f} mm estimated, "
-                                 f"{demo_err['deepest_true_mm']:.3f} mm true"),
-        },
-    }
-    files = {"model": model, "shading": folder / "shading.npz",
-             "reference_frame": folder / "reference.png",
-             "noise_reference": folder / "noise_reference.npy", "demo_clip": folder / "demo.avi",
-             "topology": folder / "topology.npz"}
-    write_plugin(folder, fields, files, overwrite=overwrite)
-    report = validate_plugin(folder)
-    if not report.ok:
-        raise SystemExit(f"built plugin {folder} does not validate:\n" + "\n".join(report.problems))
-    return {"plugin": name, "seconds": round(time.perf_counter() - t0, 1), "held_out": held_err,
-            "demo": demo_err,
-            "codec_rmse_um_worst": float(max(codec)), "imaging_grid": [grid.nx, grid.ny],
-            "size_mb": round(sum(p.stat().st_size for p in folder.iterdir()) / 1e6, 2)}
+                          f"{demo['codec_rmse_um_worst']:.1f} um per frame"),
+            "demo_depth_error": (f"frame RMSE <= {demo['rmse_um_worst']:.1f} um; deepest frame "
+                                 f"{demo['deepest_estimated_mm']:.3f} mm estimated, "
+                                 f"{demo['deepest_true_mm']:.3f} mm true"),
+        })
+        fields["provenance"] = prov
+        files = {k: plugin.path_of(k) for k in m.files()}
+        files["demo_clip"] = staging / "demo.avi"
+        write_plugin(staging, fields, files, overwrite=True)
+        report = validate_plugin(staging)
+        if not report.ok:
+            raise SystemExit(f"built plugin {staging} does not validate:\n"
+                             + "\n".join(report.problems))
+        if folder.exists():
+            old = folder.parent / f".{folder.name}.old-{os.getpid()}"
+            os.replace(folder, old)
+            os.replace(staging, folder)
+            shutil.rmtree(old)
+        else:
+            os.replace(staging, folder)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+    return {"plugin": name, "seconds": round(time.perf_counter() - t0, 1), "held_out": held,
+            "demo": demo, "material": json.loads(m.material.model_dump_json()),
+            "imaging_grid": [m.camera.grid.nx, m.camera.grid.ny],
+            "size_mb": round(size / 1e6, 2)}
 
 
 def relink_model(folder: Path, model: Path) -> dict:
@@ -389,11 +357,14 @@ def relink_model(folder: Path, model: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description="Build the shipped sensor plugins with the "
+                                 "calibration wizard on the virtual sensors of the same names.")
     ap.add_argument("--only", choices=sorted(DEMOS), help="build one plugin")
     ap.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="the family ONNX model")
     ap.add_argument("--out", type=Path, default=HERE, help="folder of plugin folders")
     ap.add_argument("--overwrite", action="store_true", help="replace existing plugins")
+    ap.add_argument("--work", type=Path, help="keep the wizard's work folders here "
+                    "(WORK/NAME.calibration; default: a temporary folder)")
     ap.add_argument("--relink-model", action="store_true",
                     help="only point existing plugins at --model (after a re-export)")
     args = ap.parse_args(argv)
@@ -401,7 +372,8 @@ def main(argv=None) -> int:
         if args.relink_model:
             print(json.dumps(relink_model(args.out / name, args.model.resolve()), indent=2))
             continue
-        info = build(name, args.out / name, args.model.resolve(), args.overwrite)
+        work = args.work / f"{name}.calibration" if args.work else None
+        info = build(name, args.out / name, args.model.resolve(), args.overwrite, work)
         print(json.dumps(info, indent=2))
     return 0
 

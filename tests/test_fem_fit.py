@@ -79,3 +79,24 @@ def test_friction_law_is_not_misattributed(setup):
     print(res.friction_note)
     assert res.friction == "frictionless" or "not identifiable" in res.friction_note
     assert res.friction != "stick"
+
+
+def test_depth_offset_of_the_given_contacts_is_fitted_with_E(setup):
+    """A rig whose depth zero is 40 um off: the contacts are given 0.04 mm shallower than they
+    were. Fitting the offset with E recovers both and brings the depth-map gap back to the noise;
+    ignored, it leaves a gap twice as large."""
+    mesh, camera, contacts, poses, bank = setup
+    off = 0.04
+    shifted = [MatchedContact(c.depth_mm, c.indenter,
+                              p.model_copy(update={"depth_mm": p.depth_mm - off}), c.force_n)
+               for c, p in zip(contacts, poses)]
+    res = fit_fem_parameters(shifted, bank, camera, bootstrap=0, fit_depth_offset=True)
+    naive = fit_fem_parameters(shifted, bank, camera, bootstrap=0)
+    print(f"offset {res.depth_offset_mm * 1e3:.1f} um, E {res.E_mpa:.4f}, nu {res.nu:.4f} "
+          f"(ignored: E {naive.E_mpa:.4f}, nu {naive.nu:.4f}, gap {naive.rmse_mm * 1e3:.2f} um vs "
+          f"{res.rmse_mm * 1e3:.2f} um)")
+    assert res.depth_offset_mm == pytest.approx(off, abs=0.005)
+    assert res.E_mpa == pytest.approx(E_TRUE, rel=0.05)
+    assert res.nu == pytest.approx(NU_TRUE, abs=0.02)
+    assert res.rmse_mm < 0.0075
+    assert naive.rmse_mm > 2 * res.rmse_mm and naive.depth_offset_mm is None

@@ -132,3 +132,22 @@ def test_dataset_is_reproducible_by_seed_and_resumable(tmp_path, pad_sim):
     clash = run("simulate", "--n", 12, "--shard-size", 4, "--indenters", "sphere_r4", "--seed", 7,
                 "--workers", 1, "--out", a)
     assert clash.exit_code != 0 and "different dataset" in " ".join(clash.output.split())
+
+
+def test_float16_storage_is_float32_rounded_to_half_precision(tmp_path, pad_sim):
+    # Same seed, two precisions: the half-precision shard holds exactly the float32 values rounded to
+    # 11 significant bits, so its error is within half a unit in the last place (<= 2^-11 relative).
+    common = ("simulate", "--n", 3, "--shard-size", 3, "--indenters", "sphere_r4,cross", "--seed", 3, "--workers", 1)
+    assert run(*common, "--storage", "float32", "--out", tmp_path / "f32").exit_code == 0
+    assert run(*common, "--out", tmp_path / "f16").exit_code == 0  # float16 is the default
+    with np.load(tmp_path / "f32" / "shard_00000.npz") as a, np.load(tmp_path / "f16" / "shard_00000.npz") as b:
+        for key in ("depth", "depth_detail", "displacement"):
+            exact, half = a[key], b[key]
+            assert exact.dtype == np.float32 and half.dtype == np.float16
+            np.testing.assert_array_equal(half, exact.astype(np.float16))
+            err = np.abs(half.astype(np.float32) - exact)
+            assert np.all(err <= 2.0**-11 * np.abs(exact) + 2.0**-25), key  # half an ulp; + subnormal spacing
+            assert err.max() <= 0.49e-3 and exact.max() > 0.1  # mm: < 0.5 um on a real contact
+        np.testing.assert_array_equal(a["force_n"], b["force_n"])
+    bad = run(*common, "--storage", "float8", "--out", tmp_path / "bad")
+    assert bad.exit_code != 0 and "storage" in bad.output

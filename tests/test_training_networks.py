@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pydantic
 import pytest
@@ -105,3 +107,21 @@ def test_configs_refuse_inconsistent_input():
         TrainConfig(run_dir="x", data={"val_fraction": 0.2})
     with pytest.raises(pydantic.ValidationError, match="Extra inputs"):
         TrainConfig(run_dir="x", data={"dataset_dir": "d"}, learning_rate=1.0)
+
+
+def test_shipped_configs_load():
+    """Every config shipped in training/configs validates against the schema it is read with."""
+    from training.experiments import ExperimentConfig
+
+    root = Path(__file__).resolve().parents[1] / "training" / "configs"
+    files = sorted(root.glob("*.json"))
+    assert len(files) >= 5
+    for f in files:
+        if f.name.startswith("experiments"):
+            ExperimentConfig.load(f)
+        else:
+            TrainConfig.load(f)
+    stick = TrainConfig.load(root / "gpu_h100_stick.json")
+    assert stick.data.synthetic.friction == "stick"
+    with pytest.raises(pydantic.ValidationError, match="frictionless"):
+        TrainConfig(run_dir="x", data={"synthetic": {"n_samples": 8, "friction": "slip"}})

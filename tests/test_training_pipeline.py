@@ -75,3 +75,48 @@ def test_train_export_parity(tmp_path, pad):
     np.testing.assert_allclose(v, pad.vertices[None] + d, atol=1e-4)
     assert np.all(d[:, pad.backplate_nodes] == 0.0) and ood.shape == (5,)
     assert (out.with_suffix(".md")).read_text().startswith("# Model card")
+
+
+def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
+    """Two ranks under torchrun (gloo on CPU), each simulating its own contacts: the ranks stop a
+    time-budgeted stage together, run the finetune stage, and rank 0 alone writes the bundle."""
+    import os
+    import subprocess
+    import sys
+
+    from training.train import load_bundle
+
+    stage = {"epochs": 2, "batch_size": 8, "lr": 2e-3, "kl_weight": 1e-5}
+    cfg = {
+        "run_dir": str(tmp_path / "run"), "threads": 1,
+        "model": {
+            "image": {"widths": [8, 8, 16, 16, 32], "hidden": 16, "latent": 16},
+            "mesh": {"channels": [4, 4, 4, 8], "cheb_k": [2, 2, 2, 2], "latent": 16},
+            "projection": {"hidden": [32, 32, 32]},
+            "lean_decoder": {"channels": [8, 8, 8, 8]},
+            "ood_decoder": {"channels": [4, 4, 4, 4, 4]},
+        },
+        "data": {"synthetic": {
+            "n_samples": 24, "seed": 9, "indenters": ["sphere_r4", "cube_corner"], "radius_max_mm": 3.0,
+            "depth_min_mm": 0.3, "depth_max_mm": 1.0, "contact_radius_mm": 7.5, "formulation": "standard"}},
+        "image_vae": stage, "mesh_vae": stage, "ood_decoder": stage, "projection": stage,
+        "lean_decoder": {**stage, "time_budget_s": 1e-3},  # stops after its first epoch, on both ranks
+        "finetune": stage,
+    }
+    path = tmp_path / "ddp.json"
+    path.write_text(json.dumps(cfg))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+         "-m", "training", "train", "--config", str(path)],
+        capture_output=True, text=True, timeout=600, env=env,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert len(history["lean_decoder"]) == 1 and len(history["finetune"]) == 2
+    assert len(history["image_vae"]) == 2
+    model, bundle = load_bundle(tmp_path / "run" / "model.pt")
+    metrics = bundle["metrics"]
+    assert metrics["data"]["train"]["source"].endswith("rank=0")  # rank 0 reports its own shard
+    assert {"coma", "lean", "lean_staged"} <= set(metrics["decoders"])
+    assert proc.stdout.count("held-out:") == 1  # only rank 0 logs

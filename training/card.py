@@ -47,7 +47,20 @@ class ModelCard(_Strict):
     ood: dict = Field(description="Held-out quantiles of the reconstruction RMSE (mm) of the ood_score decoder.")
     ood_threshold_mm: float = Field(description="ood_score above this (held-out p99) = outside the training range.")
     limitations: list[str]
+    intended_use: list[str] = []
     export_seconds: float
+
+
+#: What the exported model is for (rendered in every card).
+INTENDED_USE = [
+    "Real-time estimate of the deformed volumetric mesh (and, through the runtime's inverse FEM, the "
+    "contact forces) of a GelSlim-family pad from its depth map, in robot software: one fixed-cost call "
+    "per camera frame, on a CPU thread or a GPU.",
+    "Depth maps from the sensor's imaging pipeline (tactile_deploy.runtime), on the model grid; "
+    "frames whose ood_score exceeds ood_threshold are outside what the model was trained on.",
+    "Not for: pads other than gelslim_v1 (the mesh hash is checked), indentations beyond 1.2 mm, "
+    "or measurements that need better than ~0.02 mm per node (see the held-out figures).",
+]
 
 
 def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds) -> dict:
@@ -90,7 +103,8 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
             "dirty": bool(bundle["git"]["dirty"]),
             "data": m["data"],
             "stages": {
-                k: cfg[k] for k in ("image_vae", "mesh_vae", "lean_decoder", "projection") if cfg.get(k) is not None
+                k: cfg[k] for k in ("image_vae", "mesh_vae", "lean_decoder", "ood_decoder", "projection", "finetune")
+                if cfg.get(k) is not None
             },
             "device": cfg["device"],
         },
@@ -106,7 +120,10 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
             "nu = 0.48); real sensor maps need the self-supervised adaptation step.",
             "The 5,380-node mesh smooths contact features finer than ~2 mm.",
             "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
+            "On simulated data the physics baseline (depth map as the surface's normal displacement + linear "
+            "FEM) is more accurate in every domain measured (docs/predictor.md, evaluation by domain).",
         ],
+        intended_use=INTENDED_USE,
         export_seconds=round(float(seconds), 2),
     )
     return card.model_dump(mode="json")
@@ -185,6 +202,10 @@ def render_markdown(card: dict) -> str:
         f"- commit `{card['training']['commit']}`" + (" (uncommitted changes)" if card["training"]["dirty"] else ""),
         f"- data: {json.dumps(card['training']['data']['train']['n_samples'])} training / "
         f"{card['training']['data']['val']['n_samples']} held-out samples, {card['training']['data']['train']['source']}",
+        "",
+        "## Intended use",
+        "",
+        *[f"- {x}" for x in card.get("intended_use", [])],
         "",
         "## Limitations",
         "",

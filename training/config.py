@@ -99,8 +99,21 @@ class SyntheticData(_Strict):
     depth_max_mm: float = Field(1.2, gt=0)
     radius_max_mm: float = Field(12.0, ge=0, description="Contacts lie within this radius, mm.")
     nu: float = Field(0.48, ge=0, lt=0.5, description="Poisson ratio of the gel.")
+    friction: Literal["frictionless", "stick"] = Field(
+        "frictionless", description="Contact law of the simulated presses: the gel slides freely, or sticks to the indenter."
+    )
     contact_radius_mm: float | None = Field(
         None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
+    )
+    generator: Literal["cpu", "batched"] = Field(
+        "cpu",
+        description="'cpu': the CPU contact simulator, one contact at a time; 'batched': the batched "
+        "torch simulator on the training device (GPU: tens of thousands of contacts per second).",
+    )
+    envelope_bank: str | None = Field(
+        None,
+        description="'batched' only: an .npz of the indenters' envelope grids (EnvelopeBank.save_npz), "
+        "for machines without the mesh libraries; its names must match the indenters.",
     )
     formulation: Literal["nodal_pressure", "standard"] = Field(
         "nodal_pressure",
@@ -132,6 +145,11 @@ class StageConfig(_Strict):
     latent_weight: float = Field(
         0.1, ge=0, description="Projection stage: weight of the latent MSE beside the mesh MSE."
     )
+    time_budget_s: float | None = Field(
+        None, gt=0, description="Stop when one more epoch (as long as the last) would end past this many "
+        "seconds of the stage; the first epoch always runs (None: run every epoch). The history records "
+        "the epochs run.",
+    )
 
 
 class TrainConfig(_Strict):
@@ -153,6 +171,20 @@ class TrainConfig(_Strict):
         default_factory=lambda: StageConfig(epochs=20),
         description="Train the lean image decoder (deployed ood_score) on the frozen image encoder (None: skip).",
     )
+    eval_max_samples: int | None = Field(
+        10000, gt=0, description="Held-out (and training-probe) samples evaluated at the end (None: all).",
+    )
+    finetune: StageConfig | None = Field(
+        None,
+        description="After the projection: train projection + lean decoder together on the mesh MSE of the "
+        "image -> mesh path, image encoder frozen (None: skip). Needs lean_decoder.",
+    )
+
+    @model_validator(mode="after")
+    def _check_stages(self) -> "TrainConfig":
+        if self.finetune is not None and self.lean_decoder is None:
+            raise ValueError("finetune trains the lean decoder: give lean_decoder too, or set finetune to null")
+        return self
 
     @staticmethod
     def load(path: str | Path) -> "TrainConfig":

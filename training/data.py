@@ -136,11 +136,12 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     from tactile_deploy.fem.simulator import ContactSimulator
     from tactile_deploy.indenters import ContactPose, get_indenter
     from tactile_deploy.pad.asset import load_pad
+    from tactile_deploy.fem.contact import ContactSolveError
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
 
     if spec.depth_min_mm > spec.depth_max_mm:
         raise ValueError(f"depth_min_mm={spec.depth_min_mm} exceeds depth_max_mm={spec.depth_max_mm}")
-    material = Material(nu=spec.nu)
+    material = Material(nu=spec.nu, friction=spec.friction)
     pad = load_pad()
     allowed = None
     if spec.contact_radius_mm is None:
@@ -175,7 +176,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 break
             try:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
-            except ContactError:
+            except (ContactError, ContactSolveError):  # off the pad, or a sticking contact the solver gives up on
                 rejected += 1
                 break
             depth[i] = s.depth_mm
@@ -193,7 +194,72 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic seed={spec.seed} rank={rank}")
 
 
-def load(cfg: DataConfig, rank: int = 0, world: int = 1) -> ContactData:
+def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
+    """``n`` new contacts of ``spec``'s distribution (same indenters and pose ranges, another
+    ``seed``), simulated on the CPU: held-out or calibration maps for a run whose data were
+    generated inside the training job and not stored."""
+    if seed == spec.seed:
+        raise ValueError(f"seed {seed} is the training seed: choose another so that no contact is shared")
+    return generate(spec.model_copy(update={"n_samples": n, "seed": seed, "generator": "cpu", "envelope_bank": None}))
+
+
+def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: int = 16384) -> ContactData:
+    """Like :func:`generate`, with the batched torch simulator on ``device`` (exact same physics).
+
+    Poses are drawn with a torch generator seeded by ``(seed, rank)``; contacts that touch no
+    sensing node, or that the exact solver flags unsolved, are dropped and redrawn.
+    """
+    import torch
+
+    from tactile_deploy.fem.batched import BatchedContactSimulator, EnvelopeBank
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.indenters import get_indenter
+    from tactile_deploy.pad.asset import load_pad
+
+    if spec.contact_radius_mm is not None:
+        raise ValueError("the batched generator solves contact on the whole pad: leave contact_radius_mm unset")
+    pad = load_pad()
+    names = _indenter_names(spec)
+    if spec.envelope_bank is not None:
+        bank = EnvelopeBank.load_npz(spec.envelope_bank, device)
+        if list(bank.names) != list(names):
+            raise ValueError(f"{spec.envelope_bank} holds indenters {list(bank.names)}, expected {names}")
+    else:
+        bank = EnvelopeBank.from_indenters([get_indenter(n) for n in names], device)
+    device = torch.device(device)
+    # on a GPU the operators are factored there in ~2 s; on a CPU the contact simulator's cache is reused
+    operators = "torch" if device.type == "cuda" else "auto"
+    sim = BatchedContactSimulator(
+        pad, Material(nu=spec.nu, friction=spec.friction), device, torch.float32, formulation=spec.formulation,
+        operators=operators,
+    )
+    g = torch.Generator(device="cpu").manual_seed(int(spec.seed) * 1_000_003 + rank)
+    n = spec.n_samples
+    depth = np.zeros((n, 128, 128), np.float32)
+    disp = np.zeros((n, pad.n_nodes, 3), np.float32)
+    ind = np.empty(n, dtype=object)
+    i = drawn = 0
+    while i < n:
+        m = min(batch, max(64, 2 * (n - i)))  # a few spare draws for contacts that touch nothing
+        index = torch.randint(len(names), (m,), generator=g)
+        r = spec.radius_max_mm * torch.sqrt(torch.rand(m, generator=g, dtype=torch.float64))
+        phi = 2 * math.pi * torch.rand(m, generator=g, dtype=torch.float64)
+        theta = 360.0 * torch.rand(m, generator=g, dtype=torch.float64)
+        dmm = spec.depth_min_mm + (spec.depth_max_mm - spec.depth_min_mm) * torch.rand(m, generator=g, dtype=torch.float64)
+        poses = torch.stack([r * torch.cos(phi), r * torch.sin(phi), theta, dmm], 1)
+        res = sim.solve(bank, index.to(device), poses.to(device))
+        keep = (res.solved & res.contact_mask.any(dim=1)).cpu().numpy()
+        take = np.flatnonzero(keep)[: n - i]
+        drawn += m
+        depth[i : i + len(take)] = res.depth_mm[take].cpu().numpy()
+        disp[i : i + len(take)] = res.displacements_mm[take].cpu().numpy()
+        ind[i : i + len(take)] = np.asarray(names)[index.numpy()[take]]
+        i += len(take)
+    cid = np.arange(n, dtype=np.int64) + rank * (1 << 40)
+    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic batched seed={spec.seed} rank={rank} drawn={drawn}")
+
+
+def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> ContactData:
     """The data of ``rank``: from the dataset folder or generated (and cached if asked)."""
     if cfg.dataset_dir is not None:
         return load_dataset_dir(cfg.dataset_dir, rank, world)
@@ -205,7 +271,10 @@ def load(cfg: DataConfig, rank: int = 0, world: int = 1) -> ContactData:
         if cache.exists():
             with np.load(cache) as d:
                 return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]))
-    data = generate(cfg.synthetic, rank)
+    if cfg.synthetic.generator == "batched":
+        data = generate_batched(cfg.synthetic, rank, device)
+    else:
+        data = generate(cfg.synthetic, rank)
     if cache is not None:
         from tactile_deploy.atomic import write_npz
 

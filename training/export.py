@@ -388,11 +388,21 @@ def export_run(
 
 
 def _calibration_maps(run_dir: Path, fallback: np.ndarray, n: int = 256) -> np.ndarray:
-    """Training depth maps for int8 calibration (never the held-out maps used for accuracy)."""
+    """Depth maps of the training distribution for int8 calibration of the run in ``run_dir``."""
     from training.config import TrainConfig
-    from training.data import load, split_by_contact
 
     cfg = TrainConfig.model_validate(json.loads((run_dir / "config.json").read_text()))
+    return calibration_maps(cfg, fallback, n)
+
+
+def calibration_maps(cfg, fallback: np.ndarray, n: int = 256) -> np.ndarray:
+    """Depth maps (n, 1, R, R) mm of the training distribution for int8 calibration, never the
+    held-out maps used for accuracy: ``n`` maps of the run's dataset folder, or ``n`` fresh
+    contacts of its synthetic generator (another seed, simulated on the CPU)."""
+    from training.data import fresh_contacts, load, split_by_contact
+
+    if cfg.data.synthetic is not None:
+        return fresh_contacts(cfg.data.synthetic, n, cfg.data.synthetic.seed + 1_000).depth_mm[:, None].astype(np.float32)
     try:
         data = load(cfg.data)
     except (FileNotFoundError, ValueError):

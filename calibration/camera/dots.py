@@ -88,7 +88,12 @@ def detect_dots(frame: np.ndarray, reference: np.ndarray | None = None, *,
         raise ValueError(f"{name}: frame contains NaN or inf")
     s = cv2.GaussianBlur(mag, (0, 0), blur_sigma_px)
     med = float(np.median(s))
-    noise = 1.4826 * float(np.median(np.abs(s - med)))
+    # noise of the smoothed magnitude: pixel noise from the high-pass residual (robust when
+    # the dots cover much of the frame, unlike the spread of ``s`` itself) times the Gaussian's
+    # white-noise gain 1 / (2 sqrt(pi) sigma)
+    high = mag - cv2.GaussianBlur(mag, (0, 0), 1.0)
+    pixel_noise = 1.4826 * float(np.median(np.abs(high - np.median(high))))
+    noise = pixel_noise / (2.0 * np.sqrt(np.pi) * max(blur_sigma_px, 0.5))
     peak = float(np.max(s))
     scaled = np.clip((s - med) * (255.0 / max(peak - med, 1e-12)), 0, 255).astype(np.uint8)
     otsu, _ = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)

@@ -60,6 +60,8 @@ class FemFitResult:
     evaluations: int
     rmse_mm: float  # depth-map gap at the optimum, over pad pixels
     poses: list[ContactPose] = field(default_factory=list)
+    nu_note: str = ""
+    depth_offset_mm: float | None = None  # fitted offset of the given contacts' depths, mm
     objective_curve: list[tuple[float, float]] = field(default_factory=list)
 
 
@@ -140,6 +142,37 @@ def _is_round(indenter) -> bool:
     )
 
 
+def unit_force_n(bank: OperatorBank, nu: float, indenter, pose: ContactPose) -> float:
+    """Total normal force (N) of ``indenter`` at ``pose`` for E = 1 MPa (no depth map)."""
+    mesh = bank.mesh
+    xy = mesh.vertices[mesh.sensing_nodes, :2]
+    delta = indenter.intrusion_mm(xy, pose) + mesh.vertices[mesh.sensing_nodes, 2]
+    return bank.sensing_response(nu, delta)[1]
+
+
+def fit_depth_offset_mm(bank: OperatorBank, nu: float, contacts, poses,
+                        bounds_mm: tuple[float, float] = (-0.15, 0.15)) -> float:
+    """Common offset (mm, positive: the contacts went deeper than given) of the contacts' depths
+    that, with the best E, explains the measured forces best (relative residuals).
+
+    F_i = E * F1(pose_i deepened by the offset), F1 the FEM force at E = 1 MPa: E scales every
+    force alike while an offset changes shallow presses relatively more than deep ones, so both
+    are identifiable from presses of several depths.
+    """
+    fm = np.array([c.force_n for c in contacts], np.float64)
+    indenters = [get_indenter(c.indenter) for c in contacts]
+
+    def cost(off):
+        f1 = np.array([unit_force_n(bank, nu, ind, p.model_copy(
+            update={"depth_mm": max(p.depth_mm + off, 1e-4)})) for ind, p in zip(indenters, poses)])
+        q = f1 / fm
+        e = q.sum() / (q @ q)
+        return float(np.sum((e * q - 1.0) ** 2))
+
+    res = optimize.minimize_scalar(cost, bounds=bounds_mm, method="bounded", options={"xatol": 2e-4})
+    return float(res.x)
+
+
 def depth_objective(bank, nu, camera, contacts, poses) -> float:
     """Root-mean-square depth-map gap (mm) over all contacts' pad pixels at ``nu``."""
     total, count = 0.0, 0
@@ -158,6 +191,9 @@ def _minimise_nu(objective, lo, hi, method: str, seed: int):
         v = objective(float(nu))
         curve.append((float(nu), v))
         return v
+
+    if hi - lo < 1e-9:  # one operator node: nu is fixed there
+        return float(lo), f(lo), 1, curve
 
     if method == "brent":
         res = optimize.minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 2e-4})
@@ -187,8 +223,14 @@ def fit_fem_parameters(
     stick_bank: OperatorBank | None = None,
     bootstrap: int = 20,
     seed: int = 0,
+    fit_depth_offset: bool = False,
 ) -> FemFitResult:
-    """Fit nu (and E from forces, and the friction law when ``stick_bank`` is given)."""
+    """Fit nu (and E from forces, and the friction law when ``stick_bank`` is given).
+
+    fit_depth_offset : the given contacts' depths share an unknown offset (a rig's touch-off
+        error): fit it from the forces with E (:func:`fit_depth_offset_mm`), correct those
+        contacts, refit nu. Needs forces at given contacts of several depths.
+    """
     if not contacts:
         raise ValueError("no contacts to fit")
     camera = camera or DepthCamera()
@@ -201,7 +243,20 @@ def fit_fem_parameters(
         poses = [c.pose if c.pose is not None else estimate_pose(bank, nu, camera, c, start=p) for c, p in zip(contacts, poses)]
         nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
         evals += more
-        curve += curve2
+        curve = curve2  # the objective at the final contacts
+
+    depth_offset = None
+    poses0 = list(poses)
+    given = [i for i, c in enumerate(contacts) if c.pose is not None and c.force_n is not None]
+    if fit_depth_offset and len(given) >= 3:
+        given_poses = [poses[i] for i in given]
+        for _ in range(2):  # offset at this nu, nu at the corrected contacts, twice
+            depth_offset = fit_depth_offset_mm(bank, nu, [contacts[i] for i in given], given_poses)
+            poses = [p.model_copy(update={"depth_mm": p.depth_mm + depth_offset})
+                     if c.pose is not None else p for c, p in zip(contacts, poses0)]
+            nu, value, more, curve2 = _minimise_nu(lambda n: depth_objective(bank, n, camera, contacts, poses), lo, hi, method, seed)
+            evals += more
+            curve = curve2  # the objective at the final contacts
 
     # bootstrap over contacts (Brent, poses fixed): the spread of nu
     rng = np.random.default_rng(seed)
@@ -212,6 +267,8 @@ def fit_fem_parameters(
         sub_p = [poses[i] for i in idx]
         nus.append(_minimise_nu(lambda n: depth_objective(bank, n, camera, sub_c, sub_p), lo, hi, "brent", seed)[0])
     nu_std = float(np.std(nus)) if nus else float("nan")
+    nu_note = (f"fixed at {lo:g}: the operator bank has one node (give several to fit it)"
+               if hi - lo < 1e-9 else f"fitted in [{lo:g}, {hi:g}] ({method})")
 
     # E from forces: F_measured = E * F(E = 1)
     with_force = [(c, p) for c, p in zip(contacts, poses) if c.force_n is not None]
@@ -221,7 +278,9 @@ def fit_fem_parameters(
         E = float(fm @ f1 / (f1 @ f1))
         ratios = fm / f1
         E_std = float(np.std([np.mean(ratios[rng.integers(len(ratios), size=len(ratios))]) for _ in range(200)]))
-        E_note = f"from {len(with_force)} measured forces"
+        E_note = f"from {len(with_force)} measured forces" + (
+            f", with a fitted depth offset of {depth_offset * 1e3:+.1f} um" if depth_offset is not None
+            else "")
     else:
         E, E_std = None, None
         E_note = (
@@ -256,5 +315,5 @@ def fit_fem_parameters(
     return FemFitResult(
         nu=nu, nu_std=nu_std, E_mpa=E, E_std_mpa=E_std, E_note=E_note, friction=friction,
         friction_note=friction_note, method=method, evaluations=evals, rmse_mm=value,
-        poses=poses, objective_curve=curve,
+        poses=poses, objective_curve=curve, nu_note=nu_note, depth_offset_mm=depth_offset,
     )

@@ -54,9 +54,13 @@ class OperatorBank:
             if progress is not None:
                 progress(1)
         s = _s(self.grid_nu)
-        self._C = BarycentricInterpolator(s, np.stack(Cs).reshape(len(s), -1))
-        self._G = BarycentricInterpolator(s, np.stack(Gs).reshape(len(s), -1))
         self._shapes = (Cs[0].shape, Gs[0].shape)
+        if len(s) == 1:  # one node: the operators at that nu only (nu_range is one point)
+            self._C = lambda _s, c=Cs[0]: c
+            self._G = lambda _s, g=Gs[0]: g
+        else:
+            self._C = BarycentricInterpolator(s, np.stack(Cs).reshape(len(s), -1))
+            self._G = BarycentricInterpolator(s, np.stack(Gs).reshape(len(s), -1))
         self._at: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
     @property

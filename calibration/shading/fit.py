@@ -8,7 +8,9 @@ Pipeline (each step a function of this module or of :mod:`.circles`):
    model (:func:`.circles.refine_centres`);
 3. training targets: sphere gradients of the **ball's** radius inside a target region around
    each centre, and zero gradient far from the contact (beyond ``far_factor`` contact radii);
-   the sunken gel in between has no target;
+   the sunken gel in between has no target, unless the presses carry modelled depth profiles
+   (``PressSet.profiles``, e.g. the FEM of the pad: :mod:`.press_profile`), whose slopes it
+   then gets, with a lower weight (``ring_stride``);
 4. the table: the mean target of each colour bin (saturated channels in a bin of their own),
    smoothed over image position with a Gaussian of ``kernel_sigma_mm`` and stored at nodes
    every ``node_spacing_mm``; where a node has few samples of a bin it falls back to the mean
@@ -70,6 +72,7 @@ class ShadingFitConfig:
     centre_iterations: int = 3          # shared-colour-model centre refinement, iterations
     far_factor: float = 3.5             # zero-gradient samples beyond this many contact radii
     far_stride: int = 3                 # subsampling of the far samples, px
+    ring_stride: int = 4                # subsampling of the samples with profile targets, px
     reference_gain: bool = True         # bin colour differences x reference_gain(reference)
     offset_inlier_grey: float = 12.0    # see frame_offset
     poisson_weights_x: tuple[float, ...] = (0.02, 0.035, 0.06, 0.1, 0.18, 0.35, 1.0)
@@ -101,24 +104,42 @@ def colour_differences(presses: PressSet, inlier_grey: float = 12.0):
     return diffs
 
 
-def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: ShadingFitConfig):
-    """(bin index, target (., 2), column, row) of the contact and far-field samples."""
+def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: ShadingFitConfig,
+                      profiles=None, mm_per_px: float = 1.0):
+    """(bin index, target (., 2), column, row) of the contact, ring and far-field samples.
+
+    Inside ``radii`` the sphere of the ball; where a press has a profile
+    (:class:`~calibration.shading.press_profile.PressProfile`), the ring from there out to
+    ``far_factor`` contact radii gets the profile's slope, one pixel in ``ring_stride`` along
+    each axis (a pixel there weighs 1 / ring_stride^2 of a contact pixel); beyond it zero
+    gradient.
+    """
     h, w = diffs.shape[1:3]
     far_r, far_c = np.mgrid[0:h:cfg.far_stride, 0:w:cfg.far_stride]
     keys, targets, cs, rs = [], [], [], []
     for i in range(len(diffs)):
         cx, cy, a = circles[i]
         rad = radii[i]
-        r0, r1 = max(int(cy - rad), 0), min(int(cy + rad) + 2, h)
-        c0, c1 = max(int(cx - rad), 0), min(int(cx + rad) + 2, w)
+        prof = None if profiles is None else profiles[i]
+        reach = cfg.far_factor * a if prof is not None else rad
+        r0, r1 = max(int(cy - reach), 0), min(int(cy + reach) + 2, h)
+        c0, c1 = max(int(cx - reach), 0), min(int(cx + reach) + 2, w)
         rows, cols = np.mgrid[r0:r1, c0:c1]
-        m = np.hypot(cols - cx, rows - cy) < rad
+        rho = np.hypot(cols - cx, rows - cy)
+        m = rho < rad
         far = np.hypot(far_c - cx, far_r - cy) > cfg.far_factor * a
-        for r, c, zero in ((rows[m], cols[m], False), (far_r[far], far_c[far], True)):
+        parts = [(rows[m], cols[m], sphere_gradients_at(cols[m], rows[m], (cx, cy),
+                                                        ball_radius_px))]
+        if prof is not None:
+            ring = ((rho >= rad) & (rho < reach)
+                    & (rows % cfg.ring_stride == 0) & (cols % cfg.ring_stride == 0))
+            parts.append((rows[ring], cols[ring],
+                          prof.image_gradients(cols[ring], rows[ring], (cx, cy), mm_per_px)))
+        parts.append((far_r[far], far_c[far], np.zeros((int(far.sum()), 2))))
+        for r, c, t in parts:
             keys.append(colour_bin_index(diffs[i][r, c], saturated[i][r, c], cfg.bins,
                                          cfg.colour_min, cfg.colour_max))
-            targets.append(np.zeros((len(c), 2)) if zero
-                           else sphere_gradients_at(c, r, (cx, cy), ball_radius_px))
+            targets.append(t)
             cs.append(c)
             rs.append(r)
     return (np.concatenate(keys), np.concatenate(targets), np.concatenate(cs).astype(float),
@@ -287,7 +308,8 @@ def fit_shading(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
     radii = cfg.initial_fraction * circ[:, 2]
     model = None
     for it in range(cfg.radius_iterations + 1):
-        samples = _training_samples(diffs, saturated, circ, radii, r_px, cfg)
+        samples = _training_samples(diffs, saturated, circ, radii, r_px, cfg, presses.profiles,
+                                    mm_per_px)
         model = _build_model(*samples, presses.shape, len(presses), mm_per_px, ball_radius_mm,
                              cfg)
         if it == cfg.radius_iterations:

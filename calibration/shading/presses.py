@@ -32,12 +32,16 @@ class PressSet:
     frames : (N, H, W, 3) uint8 RGB, one ball press each.
     names : N file names (no folder).
     circles : (N, 3) float64 px ``(column, row, radius)`` of the contact circles, or None.
+    profiles : N modelled depth profiles around the contact centres
+        (:class:`~calibration.shading.press_profile.PressProfile`, None where there is none):
+        training targets for the gel outside the contact; or None.
     """
 
     reference: np.ndarray
     frames: np.ndarray
     names: list[str]
     circles: np.ndarray | None = None
+    profiles: list | None = None
 
     def __post_init__(self):
         ref = np.asarray(self.reference)
@@ -57,6 +61,8 @@ class PressSet:
             if not np.all(np.isfinite(c)) or np.any(c[:, 2] <= 0):
                 raise PressDataError("circles must be finite with positive radii")
             self.circles = c
+        if self.profiles is not None and len(self.profiles) != len(fr):
+            raise PressDataError(f"{len(self.profiles)} profiles for {len(fr)} frames")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -70,7 +76,8 @@ class PressSet:
         """The presses at ``index`` (indices or boolean mask), same reference."""
         idx = np.arange(len(self))[index]
         return PressSet(self.reference, self.frames[idx], [self.names[i] for i in idx],
-                        None if self.circles is None else self.circles[idx])
+                        None if self.circles is None else self.circles[idx],
+                        None if self.profiles is None else [self.profiles[i] for i in idx])
 
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:

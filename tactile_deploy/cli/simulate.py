@@ -43,6 +43,7 @@ def simulate_command(
     shard_size: int = typer.Option(256, "--shard-size", help="Batch mode: samples per shard file."),
     depth_range: str = typer.Option("0.2,1.2", "--depth-range", help="Batch mode: min,max depth, mm."),
     workers: int = typer.Option(2, "--workers", help="Batch mode: worker processes."),
+    storage: str = typer.Option("float16", "--storage", help="Batch mode: precision of stored depth maps and displacements, float16 (<= 0.49 um rounding) or float32."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output file."),
     sensor: Optional[str] = typer.Option(None, "--sensor", help="Virtual sensor (name, see docs/optics.md, or .json): its material and effects replace --E --nu --mu --friction; one contact only."),
     rgb: bool = typer.Option(False, "--rgb", help="With --sensor: render the camera frame into the .npz ('frame', (H, W, 3) uint8 RGB) and a PNG beside it (noise from --seed)."),
@@ -75,7 +76,7 @@ def simulate_command(
             fail("give --indenter NAME|PATH for one contact, or --n N for a dataset")
         _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite)
     else:
-        _batch(n, indenters, seed, shard_size, depth_range, workers, material, out)
+        _batch(n, indenters, seed, shard_size, depth_range, workers, material, out, storage)
 
 
 def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, overwrite: bool) -> None:
@@ -110,7 +111,7 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
     )
 
 
-def _batch(n, indenters, seed, shard_size, depth_range, workers, material, out: Path) -> None:
+def _batch(n, indenters, seed, shard_size, depth_range, workers, material, out: Path, storage: str = "float16") -> None:
     from pydantic import ValidationError
 
     from tactile_deploy.simulation.contact import get_simulator
@@ -128,7 +129,7 @@ def _batch(n, indenters, seed, shard_size, depth_range, workers, material, out: 
             get_indenter(name)
         spec = DatasetSpec(
             n_samples=n, indenters=names, seed=seed, shard_size=shard_size,
-            depth_min_mm=lo, depth_max_mm=hi, material=material,
+            depth_min_mm=lo, depth_max_mm=hi, material=material, storage=storage,
         )
     except (ValueError, FileNotFoundError, ValidationError) as exc:
         fail(str(exc))

@@ -407,6 +407,12 @@ class VirtualSensor:
                           else np.zeros(n_plane, np.float32)),
             metadata=meta, frame=out.frame)
 
+    def contact_force_n(self, indenter, pose: ContactPose) -> float:
+        """Total normal force (N) of ``indenter`` pressed at ``pose`` (no frame rendered): what a
+        force gauge under the sensor reads. 0 when the indenter does not reach the gel."""
+        result = self.solve_contact(indenter, pose)[2]
+        return 0.0 if result is None else float(result.force_n)
+
     def solve_contact(self, indenter, pose: ContactPose):
         """The mechanics of one contact: ``(pose_reached, intrusion, result)``.
 

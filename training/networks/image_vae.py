@@ -130,9 +130,12 @@ def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     return (-0.5 * (1.0 + logvar - mu.pow(2) - logvar.exp()).sum(dim=-1)).mean()
 
 
-def vae_loss(target, recon, mu, logvar, kl_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
-    """``MSE (mean over all elements) + kl_weight * KL (sum over latent dims, batch mean)``."""
+def vae_loss(target, recon, mu, logvar, kl_weight: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """``MSE (mean over all elements) + kl_weight * KL (sum over latent dims, batch mean)``.
+
+    Returns the loss and its terms as detached 0-d tensors (read once per epoch: no device sync per step).
+    """
     mse = torch.mean((recon - target) ** 2)
     kl = kl_divergence(mu, logvar)
     loss = mse + kl_weight * kl
-    return loss, {"loss": loss.item(), "mse": mse.item(), "kl": kl.item()}
+    return loss, {"loss": loss.detach(), "mse": mse.detach(), "kl": kl.detach()}

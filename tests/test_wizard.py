@@ -1,0 +1,372 @@
+"""Calibration wizard end to end: a virtual sensor pressed by a simulated rig on pseudo-terminals.
+
+Truth is independent of the wizard: the virtual sensor's own camera mapping (mm per px), FEM
+material (E) and zero offset of its pressing axis (planted in its config), and the surface its
+frames are shaded from, on new presses the wizard never saw. The plugin is checked by the
+runtime's own loader (``validate_plugin``, ``SensorPlugin``, ``ImagingPipeline``).
+
+Settings are small (6 reference frames, 16 presses, nu fixed at the sensor's operator node):
+each wizard run takes about 10-15 s once the sensor's surface operators are cached.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from tactile_deploy.cli.main import app
+
+ROOT = Path(__file__).resolve().parent.parent
+SENSOR = "gelslim2"
+CONFIG = {
+    "description": "test unit",
+    "reference": {"n_frames": 6},
+    "camera": {"n_frames": 1},
+    "presses": {"n_presses": 24},
+    "shading": {"folds": 4},
+    "fem": {"bootstrap": 0},
+    "rig": {"approach_step_mm": 0.2, "approach_clearance_mm": 0.4},
+}
+
+
+def _invoke(*args):
+    return CliRunner().invoke(app, ["calibrate", *map(str, args)])
+
+
+@pytest.fixture(scope="module")
+def sensor():
+    from tactile_deploy.sensors import load_sensor
+
+    s = load_sensor(SENSOR)
+    s.prepare()
+    return s
+
+
+@pytest.fixture(scope="module")
+def wizard_run(tmp_path_factory, sensor):
+    """One non-interactive run: ``calibrate --sensor acme --source virtual:gelslim2 --rig
+    simulated --config cfg.json --yes``."""
+    folder = tmp_path_factory.mktemp("wizard")
+    cfg = folder / "cfg.json"
+    cfg.write_text(json.dumps(CONFIG))
+    out = folder / "acme"
+    res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
+                  "--config", cfg, "--out", out, "--yes")
+    print(res.output)
+    assert res.exit_code == 0, res.output
+    return folder, out, cfg, res.output
+
+
+def test_plugin_is_loaded_by_the_runtime(wizard_run):
+    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
+
+    folder, out, _, _ = wizard_run
+    report = validate_plugin(out)
+    assert report.ok, report.problems
+    assert {"manifest", "shading model", "reference frame", "noise reference", "demo clip",
+            "topology", "model contract"} <= set(report.checked)
+    plugin = SensorPlugin.load(out)
+    assert plugin.name == "acme" and plugin.manifest.description == "test unit"
+    assert plugin.manifest.default_source.kind == "virtual"
+    # written atomically: nothing half-made is left beside it
+    assert not [p for p in folder.iterdir() if p.name.startswith(".acme")]
+    # the report shows every step with its figures
+    html = (out / "calibration" / "report.html").read_text()
+    for step in ("reference", "camera", "presses", "shading", "fem", "plugin"):
+        assert f"<h2>{step}:" in html
+    for png in ("reference", "camera", "presses", "shading", "shading_cv", "fem", "plugin"):
+        assert (out / "calibration" / f"{png}.png").stat().st_size > 10_000
+    metrics = json.loads((out / "calibration" / "metrics.json").read_text())
+    assert metrics["steps"]["presses"]["presses used"] >= 22
+    # and the main command runs on it: its demo clip (the calibration frames) -> pad meshes
+    res = CliRunner().invoke(app, ["run", "--sensor", str(out), "--source", "demo", "--out",
+                                   str(folder / "run"), "--no-forces", "--format", "ply"])
+    assert res.exit_code == 0, res.output
+    assert len(list((folder / "run").glob("mesh_*.ply"))) == 4 + 24   # 4 rest frames + presses
+
+
+def test_depth_matches_the_virtual_sensor_on_new_presses(wizard_run, sensor):
+    """New presses (places, depths, noise the wizard never saw), through the runtime's imaging
+    pipeline of the written plugin, against the surface the frames were shaded from (area
+    averaged onto the model grid). Whole-frame RMSE is held to the shading target (20 um); the
+    error near the contact is reported (docs/calibration.md: 20 um not met, a known gap) and
+    guarded against regression (measured mean 30.5 um with the FEM targets around the contacts,
+    36.1 um without them)."""
+    from tactile_deploy.imaging.camera_mapping import OutputGrid
+    from tactile_deploy.indenters import AnalyticSphere, ContactPose
+    from tactile_deploy.runtime.pipeline import GridResampler, ImagingPipeline
+    from tactile_deploy.runtime.plugins import SensorPlugin
+
+    _, out, _, _ = wizard_run
+    plugin = SensorPlugin.load(out)
+    pipeline = ImagingPipeline.from_plugin(plugin)
+    to_model = GridResampler(sensor.renderer.grid, OutputGrid())
+    g = OutputGrid()
+    x = g.x_min_mm + (np.arange(g.nx) + 0.5) * g.pitch_x_mm
+    y = g.y_max_mm - (np.arange(g.ny) + 0.5) * g.pitch_y_mm
+    ig = plugin.manifest.camera.grid
+    rng = np.random.default_rng(2024)
+    whole, near, peak = [], [], []
+    for i in range(8):
+        depth = rng.uniform(0.3, 0.8)
+        a = math.sqrt(2 * 3.0 * depth)
+        # inside the view by two contact radii (near the border the gel sinks beyond the view
+        # and the integration's zero border costs accuracy: docs/calibration.md)
+        pose = ContactPose(x_mm=rng.uniform(ig.x_min_mm + 2 * a, ig.x_max_mm - 2 * a),
+                           y_mm=rng.uniform(ig.y_min_mm + 2 * a, ig.y_max_mm - 2 * a),
+                           depth_mm=depth)
+        frame = sensor.press(AnalyticSphere(3.0), pose, np.random.default_rng([77, i]))
+        truth = to_model(frame.surface_depth_mm.astype(np.float32))
+        est = pipeline.frame_to_depth(frame.frame)
+        m = np.hypot(x[None] - pose.x_mm, y[:, None] - pose.y_mm) < 1.5 * a
+        whole.append(np.sqrt(np.mean((est - truth) ** 2)) * 1e3)
+        near.append(np.sqrt(np.mean((est[m] - truth[m]) ** 2)) * 1e3)
+        peak.append(abs(float(est.max()) - float(truth.max())) * 1e3)
+    print(f"\nplugin depth vs virtual truth, um: whole-frame RMSE {np.round(whole, 1)} (mean "
+          f"{np.mean(whole):.1f}); within 1.5 contact radii {np.round(near, 1)} (mean "
+          f"{np.mean(near):.1f}); peak {np.round(peak, 1)}")
+    assert np.mean(whole) <= 20.0
+    assert np.mean(near) <= 33.0         # regression guards, not the 20 um target
+    assert np.max(near) < 80.0
+
+
+def test_camera_mapping_and_material_match_the_planted_sensor(wizard_run, sensor):
+    """mm per px within 1 % of the virtual camera's; E within 5 % of the FEM's, and the rig's
+    depth zero error found (the sensor's zero_offset effect, 0.03 mm)."""
+    from tactile_deploy.runtime.plugins import SensorPlugin
+
+    folder, out, _, _ = wizard_run
+    m = SensorPlugin.load(out).manifest
+    true_cam = sensor.optics.camera
+    assert abs(m.camera.mm_per_px_x / true_cam.mm_per_px_x - 1) < 0.01
+    assert abs(m.camera.mm_per_px_y / true_cam.mm_per_px_y - 1) < 0.01
+    planted_offset = next(e.params["offset_mm"] for e in sensor.config.effects
+                          if e.name == "zero_offset")
+    fem = json.loads((folder / "acme.calibration" / "fem.json").read_text())
+    print(f"\nE {m.material.E_mpa:.4f} MPa (true {sensor.config.material.E_mpa}), depth offset "
+          f"{fem['depth_offset_mm'] * 1e3:.1f} um (planted {planted_offset * 1e3:.0f} um)")
+    assert m.material.E_mpa == pytest.approx(sensor.config.material.E_mpa, rel=0.05)
+    assert m.material.nu == pytest.approx(0.48)            # fixed: one operator node
+    assert "fixed at 0.48" in m.material.source
+    assert fem["depth_offset_mm"] == pytest.approx(planted_offset, abs=0.01)
+
+
+def test_redo_resume_and_config_checks(wizard_run):
+    """--redo reruns from a step (the plugin it wrote is replaced without --overwrite); a
+    finished calibration says so; another config needs --redo or --restart; bad input names
+    the file and field."""
+    from calibration.wizard.state import WorkFolder
+
+    folder, out, cfg, _ = wizard_run
+    work = WorkFolder(folder / "acme.calibration")
+    before = work.load()
+    res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
+                  "--config", cfg, "--out", out, "--yes", "--redo", "fem")
+    assert res.exit_code == 0, res.output
+    after = work.load()
+    assert "step 5/6" in res.output and "step 4/6" not in res.output
+    for step in ("reference", "camera", "presses", "shading"):
+        assert after.steps[step] == before.steps[step]
+    assert (out / "plugin.json").is_file()
+    res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
+                  "--config", cfg, "--out", out, "--yes")
+    assert res.exit_code == 0 and "Every step is done" in res.output
+    other = folder / "other.json"
+    other.write_text(json.dumps({**CONFIG, "presses": {"n_presses": 20}}))
+    res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
+                  "--config", other, "--out", out, "--yes")
+    assert res.exit_code == 2 and "presses" in res.output and "--redo" in res.output
+    res = _invoke("--sensor", "other", "--source", f"virtual:{SENSOR}", "--out", out, "--yes",
+                  "--work", work.folder)
+    assert res.exit_code == 2 and "holds a calibration of 'acme'" in res.output
+    bad = folder / "bad.json"
+    bad.write_text(json.dumps({"presses": {"depth_range_mm": [0.9, 0.3]}}))
+    res = _invoke("--sensor", "x", "--source", f"virtual:{SENSOR}", "--config", bad, "--yes")
+    assert res.exit_code == 2 and "bad.json" in res.output and "depth_range_mm" in res.output
+    res = _invoke("--sensor", "x", "--source", "virtual:nosuch", "--yes", "--out",
+                  folder / "x")
+    assert res.exit_code == 2 and "gelslim1" in res.output
+    res = _invoke("--sensor", "x", "--source", "0", "--yes")
+    assert res.exit_code == 2 and "--yes cannot wait for hand presses" in res.output
+    res = _invoke("--sensor", "x", "shading")
+    assert res.exit_code == 2 and "belong to the wizard" in res.output
+
+
+def test_wizard_config_schema_is_committed():
+    from calibration.wizard.config import SCHEMA_PATH, schema_text
+
+    assert SCHEMA_PATH.read_text() == schema_text(), (
+        "wizard config JSON Schema drifted: run `python -m calibration.wizard.config`")
+
+
+def test_calibrate_fem_on_the_wizard_presses(wizard_run):
+    """The FEM step as a plain command, on the rig presses of the wizard's work folder."""
+    folder, _, _, _ = wizard_run
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--work", str(folder / "acme.calibration"),
+                                   "--nu-grid", "0.48", "--bootstrap", "0",
+                                   "--fit-depth-offset", "--out", str(folder / "fem_cli.json")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((folder / "fem_cli.json").read_text())
+    wiz = json.loads((folder / "acme.calibration" / "fem.json").read_text())
+    assert doc["E_mpa"] == pytest.approx(wiz["E_mpa"], rel=1e-9)
+    assert doc["n_contacts"] >= 14
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(folder / "none.csv")])
+    assert res.exit_code == 2 and "none.csv not found" in res.output
+
+
+# ------------------------------------------------------------------------------ interactive
+def test_interactive_wizard_through_a_pty(tmp_path):
+    """A person at a terminal (pexpect): every step, one redo (camera), a circle corrected by
+    hand, an interruption (Ctrl-C) after the shading step, and a resume that finishes."""
+    import pexpect
+
+    from calibration.wizard.state import WorkFolder
+    from tactile_deploy.runtime.plugins import validate_plugin
+
+    cfg = tmp_path / "cfg.json"       # fewer frames and presses: the dialogue is under test
+    cfg.write_text(json.dumps({**CONFIG, "reference": {"n_frames": 3},
+                               "presses": {"n_presses": 6}, "shading": {"folds": 2}}))
+    out = tmp_path / "unit7"
+    cmd = [sys.executable, "-m", "tactile_deploy.cli.main", "calibrate", "--sensor", "unit7",
+           "--source", f"virtual:{SENSOR}", "--rig", "simulated", "--config", str(cfg),
+           "--out", str(out)]
+    env = dict(os.environ, TERM="xterm", COLUMNS="120", PYTHONUNBUFFERED="1")
+    import io
+
+    log = io.StringIO()
+
+    def spawn():
+        child = pexpect.spawn(cmd[0], cmd[1:], cwd=str(tmp_path), env=env, encoding="utf-8",
+                              timeout=120, dimensions=(50, 140))
+        child.logfile_read = log
+        return child
+
+    def next_prompt(child, step):
+        child.expect(f"Step '{step}' done. Next\\?")
+
+    c = spawn()
+    next_prompt(c, "reference")
+    c.send("1\r")                                   # accept
+    next_prompt(c, "camera")
+    c.send("3\r")                                   # redo the camera step (2: open pictures)
+    next_prompt(c, "camera")
+    c.send("1\r")
+    next_prompt(c, "presses")
+    c.send("2\r")                                   # correct a circle by hand
+    c.expect("Which press to correct")
+    c.send("\x15" + "3\r")
+    c.expect("Circle of press_002.png")
+    c.send("\x15" + "41.5 30.25 6\r")
+    c.expect("circle set by hand")
+    next_prompt(c, "presses")
+    c.send("1\r")
+    next_prompt(c, "shading")
+    c.send("1\r")
+    next_prompt(c, "fem")
+    c.sendintr()                                    # Ctrl-C: stop, progress kept
+    c.expect("Interrupted")
+    c.expect(pexpect.EOF)
+    c.close()
+    assert c.exitstatus == 130
+    state = WorkFolder(tmp_path / "unit7.calibration").load()
+    assert list(state.steps) == ["reference", "camera", "presses", "shading"]
+    with np.load(tmp_path / "unit7.calibration" / "presses.npz") as z:
+        np.testing.assert_allclose(z["circles"][2], [41.5, 30.25, 6.0])
+    assert not out.exists()
+
+    c = spawn()                                     # resume
+    c.expect("Resuming the calibration of")
+    c.expect("Resume\\?")
+    c.send("1\r")
+    next_prompt(c, "fem")
+    c.send("1\r")
+    next_prompt(c, "plugin")
+    c.send("1\r")
+    c.expect("Done.")
+    c.expect(pexpect.EOF)
+    c.close()
+    assert c.exitstatus == 0
+    transcript = log.getvalue()
+    assert transcript.count("step 2/6: camera mapping") == 2       # run, then redone
+    assert transcript.count("step 1/6: reference") == 1             # not rerun on resume
+    report = validate_plugin(out)
+    assert report.ok, report.problems
+    state = WorkFolder(tmp_path / "unit7.calibration").load()
+    assert list(state.steps) == ["reference", "camera", "presses", "shading", "fem", "plugin"]
+    assert any("circle set by hand" in n for n in state.steps["presses"].notes)
+
+
+def test_calibrate_fem_on_a_contacts_csv(tmp_path, sensor):
+    """``calibrate fem --contacts``: the virtual sensor's own depth maps (model grid) and FEM
+    forces at the contacts it reached give back its E; the CSV is checked line by line."""
+    from tactile_deploy.indenters import ContactPose
+
+    rows = ["depth_file,indenter,x_mm,y_mm,depth_mm,force_n"]
+    for i, (x, y, d) in enumerate([(-3.0, 1.0, 0.5), (2.0, -2.0, 0.8), (4.0, 3.0, 0.35)]):
+        out = sensor.press("sphere_r4", ContactPose(x_mm=x, y_mm=y, depth_mm=d), None)
+        np.save(tmp_path / f"d{i}.npy", out.depth_mm)
+        r = out.pose_reached
+        rows.append(f"d{i}.npy,sphere_r4,{r.x_mm},{r.y_mm},{r.depth_mm},{out.force_n}")
+    rows.append("d0.npy,sphere_r4,,,,")            # contact and force unknown: estimated
+    (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "c.csv"),
+                                   "--nu-grid", "0.48", "--bootstrap", "0", "--out",
+                                   str(tmp_path / "fem.json")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "fem.json").read_text())
+    assert doc["n_contacts"] == 4
+    assert doc["E_mpa"] == pytest.approx(sensor.config.material.E_mpa, rel=0.05)
+    (tmp_path / "bad.csv").write_text("depth_file,indenter,x_mm,y_mm,depth_mm,force_n\n"
+                                      "d0.npy,sphere_r4,1,abc,0.5,1\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "bad.csv")])
+    assert res.exit_code == 2 and "bad.csv, line 2: field 'y_mm'" in res.output
+    (tmp_path / "hdr.csv").write_text("file,indenter\n")
+    res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(tmp_path / "hdr.csv")])
+    assert res.exit_code == 2 and "header must be depth_file,indenter" in res.output
+
+
+def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sensor):
+    """The hardware path: ``--source clip.npz --rig PORT --gauge PORT``. A simulated rig runs
+    on two pseudo-terminals (as `tactile-deploy rig simulate` would); the frames come from a clip
+    recorded beforehand at the contacts the wizard will command (the crop target: frames taken as
+    rectified). The stage is driven to every planned contact, the gauge's forces are recorded."""
+    from calibration.rig.simulated import HertzForce, SimulatedRig
+    from calibration.wizard.steps import plan_presses
+    from tactile_deploy.indenters import AnalyticSphere, ContactPose
+    from tactile_deploy.runtime.plugins import crop_camera_mapping, validate_plugin
+    from tactile_deploy.runtime.sources.npz import save_clip
+
+    mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)
+    cfg = {**CONFIG, "reference": {"n_frames": 3}, "presses": {"n_presses": 8},
+           "shading": {"folds": 0}, "fem": {"enabled": False},
+           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)}}
+    (tmp_path / "cfg.json").write_text(json.dumps(cfg))
+    grid = crop_camera_mapping(640, 480, mm_per_px, crop).grid
+    plan = plan_presses(grid, 3.0, 8, (0.3, 0.9), 0)
+    frames = [sensor.reference_frame(np.random.default_rng([5, i])) for i in range(4)]
+    for i, (x, y, d) in enumerate(plan):
+        frames.append(sensor.press(AnalyticSphere(3.0), ContactPose(x_mm=x, y_mm=y, depth_mm=d),
+                                   np.random.default_rng([6, i]), truth=False).frame)
+    save_clip(tmp_path / "clip.npz", np.stack(frames), np.arange(len(frames)) * 33_000_000)
+    force = HertzForce(1.3)
+    with SimulatedRig(force) as sim:
+        res = _invoke("--sensor", "bench1", "--source", tmp_path / "clip.npz", "--rig",
+                      sim.stage_port, "--gauge", sim.gauge_port, "--config",
+                      tmp_path / "cfg.json", "--out", tmp_path / "bench1", "--yes")
+        history = np.array(sim.stage.history_mm)
+    assert res.exit_code == 0, res.output
+    assert validate_plugin(tmp_path / "bench1").ok
+    with np.load(tmp_path / "bench1.calibration" / "presses.npz") as z:
+        tips, forces = z["tip_mm"], z["force_n"]
+    np.testing.assert_allclose(tips, plan, atol=0.011)          # M114 reports 0.01 mm
+    np.testing.assert_allclose(forces, [force(d, 0, 0) for d in plan[:, 2]], atol=0.011)
+    for x, y, d in plan:                                        # the stage went to each contact
+        target = sim.frame.sensor_to_stage(x, y, -d)
+        assert np.min(np.linalg.norm(history - target, axis=1)) < 1e-3  # G-code: 4 decimals
