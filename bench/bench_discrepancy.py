@@ -126,6 +126,7 @@ def run(sensor_name: str, seeds: int, n_contacts: int, null_seeds: int, runtime_
             first = find_discrepancy(sensor, data, opts, tables=tables)
             v1 = record("pair_first", "+".join(pair), first, seed,
                         {"truth_parameters": {s.name: s.params for s in specs}})
+            first_entry = runs[-1]
             second_label = None
             if v1.verdict == "effect":
                 model = out_dir / f"pair{seed}.json"
@@ -138,7 +139,7 @@ def run(sensor_name: str, seeds: int, n_contacts: int, null_seeds: int, runtime_
                 v2 = record("pair_second", "+".join(pair),
                             find_discrepancy(updated, data, opts), seed)
                 second_label = _label(v2)
-            runs[-1]["found_in_turn"] = bool(
+            first_entry["found_in_turn"] = bool(
                 v1.verdict == "effect" and second_label is not None
                 and {v1.effect, second_label} == set(pair))
 
