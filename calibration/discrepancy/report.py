@@ -50,8 +50,8 @@ def residual_maps_figure(result: DiscrepancyResult, path: Path) -> None:
     order = np.argsort(-result.gap_before_mm)[:3]
     after = result.verification.after_mm if result.verification is not None else None
     cols = 4 if after is not None else 3
-    fig, axes = plt.subplots(len(order), cols, figsize=(3.1 * cols, 2.9 * len(order)),
-                             squeeze=False)
+    fig, axes = plt.subplots(len(order), cols, figsize=(3.3 * cols, 2.9 * len(order)),
+                             squeeze=False, gridspec_kw={"wspace": 0.45})
     base = result.tables.base[result.sample_contact]
     res_before = result.depth_mm - base
     lim = 1e3 * max(float(np.abs(res_before[order]).max()), 1e-6)
@@ -134,7 +134,7 @@ def fingerprint_figure(result: DiscrepancyResult, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fp = result.fingerprint
-    fig, axes = plt.subplots(1, 5, figsize=(16, 3.2))
+    fig, axes = plt.subplots(1, 5, figsize=(16, 3.2), gridspec_kw={"wspace": 0.35})
     ax = axes[0]
     ax.scatter(fp.depth_mm, 1e3 * fp.amplitude_mm, s=12)
     law = fp.summary["growth_with_depth"]
