@@ -150,6 +150,23 @@ def test_contacts_are_estimated_when_not_commanded(small_sim):
     assert v.parameters["strength"] == pytest.approx(1.0, abs=0.08)
 
 
+def test_look_alikes_are_reported_as_ambiguous_with_the_experiment_that_separates_them(small_sim):
+    """Every contact pressed to the same 0.5 mm: a zero offset of 0.02 mm and a depth scale of
+    4 % move every contact by the same 0.02 mm, so the data cannot tell them apart; at 1.0 mm
+    they differ by 0.02 mm, at 0.4 mm by 0.004 mm: the experiment is a 1.0 mm press."""
+    sensor = make_sensor(small_sim)
+    contacts = random_contacts(12, 3, radius_mm=5.5, depth_range_mm=(0.5, 0.5))
+    data = hidden_effect_data(sensor, [EffectSpec(name="zero_offset",
+                                                  params={"offset_mm": 0.02})],
+                              contacts, NOISE_MM, 4)
+    v = find_discrepancy(sensor, data, OPTS).verdict
+    assert v.verdict == "ambiguous"
+    assert {v.effect, *v.ambiguous_with} >= {"zero_offset", "depth_scale"}
+    fitted = v.parameters.get("offset_mm", 0.5 * v.parameters.get("scale", np.nan))
+    assert fitted == pytest.approx(0.02, abs=0.002)
+    assert v.experiment is not None and "to 1.0 mm" in v.experiment
+
+
 # ------------------------------------------------------------------------------ pieces
 def test_library_has_ten_registered_candidates_null_at_their_centre():
     assert len(CANDIDATES) >= 10 and len({c.name for c in CANDIDATES}) == len(CANDIDATES)

@@ -39,6 +39,10 @@ STRUCTURE_Z = 4.0
 STRUCTURE_MIN_EXCESS = 0.02
 #: A candidate within this bootstrap probability of beating the best is a look-alike.
 LOOKALIKE_PROBABILITY = 0.05
+#: ... and so is one that explains the excess energy within this share of the best: two effects
+#: that the data cannot tell apart differ only by their tables' interpolation error, which is
+#: systematic (the same sign on every contact), so the bootstrap alone would call one better.
+LOOKALIKE_SHARE = 0.01
 #: A second candidate must add this share of the excess energy to count as a second effect.
 PAIR_MIN_SHARE = 0.05
 
@@ -266,8 +270,11 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
         # nothing to it (a candidate that adds is a second effect, not an alternative)
         jb = names.index(best)
         for nm in significant:
-            if nm != best and (pair is None or nm != pair["second"]) and \
-                    np.mean(boot[:, names.index(nm)] >= boot[:, jb]) >= LOOKALIKE_PROBABILITY:
+            if nm == best or (pair is not None and nm == pair["second"]):
+                continue
+            beats = np.mean(boot[:, names.index(nm)] >= boot[:, jb])
+            close = results[best].explained - results[nm].explained <= LOOKALIKE_SHARE
+            if beats >= LOOKALIKE_PROBABILITY or close:
                 lookalikes.append(nm)
         _intervals(tables, stats, results[best], fitters[best], counts, inverse,
                    param_bootstrap)
