@@ -36,8 +36,7 @@ def discrepancy_command(
     workers: int = typer.Option(2, min=1, help="Processes that simulate the contacts' "
                                 "responses (the machine's cores)."),
 ) -> None:
-    """Compare measured contacts with the sensor model: name the missing effect and its size,
-    or say that nothing is missing, or that something is that the library cannot name."""
+    """Name the effect missing from a sensor model, with its size (or: none, unexplained)."""
     from pydantic import ValidationError
 
     from calibration.discrepancy.apply import apply_effect
