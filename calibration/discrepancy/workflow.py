@@ -284,6 +284,9 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     without its fold."""
     best = selection.stats(selection.best)
     table = tables.table(best.name)
+    # contacts where the candidate predicts something; a refined node that fails to simulate
+    # (e.g. a neo-Hookean solve beyond the fit) leaves them out of the refined table only
+    predicts = table.usable.copy()
     # with a second effect present, the named one is fitted jointly (the second's change, from
     # the tables, held at its joint fit)
     extra = _second_change(tables, selection, sample_contact)
@@ -341,9 +344,9 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
             if key not in cache:
                 c = tables.contacts[i]
                 base = tables.base[i].ravel()[roi]
-                if not table.usable[i]:  # the candidate predicts no change there
+                if not predicts[i]:  # the candidate predicts no change there
                     sim, f = base, tables.base_force[i]
-                elif len(near):
+                elif len(near) and table.usable[i]:
                     sim, f = base + table.deltas[i][near[0]], table.forces[i, near[0]]
                 elif warp is not None:
                     sim, f = warp(tables.base[i]).ravel()[roi], tables.base_force[i]
