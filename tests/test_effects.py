@@ -72,6 +72,9 @@ NON_NULL = {
     "hyperelastic": {"strength": 1.0}, "lens_distortion": {"k1": -0.2},
     "pixel_scale": {"anisotropy": 0.05}, "illumination_gradient": {"gain_per_mm_x": 0.01},
     "saturation": {"exposure_factor": 1.4}, "led_drift": {"sigma_rel": 0.05},
+    "depth_scale": {"scale": 0.03}, "position_offset": {"dx_mm": 0.2},
+    "rotation_offset": {"dtheta_deg": 3.0}, "poisson_drift": {"delta_nu": -0.02},
+    "compression_set": {"depth_mm": 0.05},
 }
 
 
@@ -337,3 +340,102 @@ def test_hyperelastic_solution_is_in_equilibrium_and_grows_faster_than_linearly(
     assert resid_u[1] / resid_u[0] > 3.0, resid_u
     assert resid_f[1] / resid_f[0] > 3.0, resid_f
     assert resid_f[1] > 0.02 * sim.solve(BALL, ContactPose(x_mm=0.5, depth_mm=0.6)).force_n
+
+
+# ------------------------------------------------------------------ contact-stage effects
+def test_depth_scale_residual_grows_in_proportion_to_the_depth(pad_sim, nominal):
+    scaled = make_sensor(pad_sim, ("depth_scale", {"scale": 0.04}))
+    for depth in (0.4, 0.8):
+        pose = ContactPose(x_mm=1.0, y_mm=-1.5, depth_mm=depth)
+        u0, _ = _contact_uz(nominal, BALL, pose)
+        u1, out = _contact_uz(scaled, BALL, pose)
+        both = (u0 < -1e-9) & np.isclose(u0, -pad_sim.intrusion(BALL, pose), atol=1e-6)
+        assert both.sum() >= 5
+        # contact nodes follow the ball: deeper by exactly scale * depth
+        np.testing.assert_allclose(u1[both] - u0[both], -0.04 * depth, atol=1e-7)
+        assert out.pose_reached.depth_mm == pytest.approx(depth * 1.04)
+
+
+def test_position_offset_moves_every_contact_by_the_same_vector(pad_sim, nominal):
+    from tactile_deploy.indenters import get_indenter
+
+    off = make_sensor(pad_sim, ("position_offset", {"dx_mm": 0.05, "dy_mm": -0.03}))
+    punch = get_indenter("flat_punch")
+    for ind, pose in ((BALL, ContactPose(x_mm=2.0, y_mm=1.0, depth_mm=0.5)),
+                      (punch, ContactPose(x_mm=-4.0, y_mm=3.0, depth_mm=0.4))):
+        moved = pose.model_copy(update={"x_mm": pose.x_mm + 0.05, "y_mm": pose.y_mm - 0.03})
+        d_off, f_off = off.depth_map(ind, pose)
+        d_ref, f_ref = nominal.depth_map(ind, moved)
+        np.testing.assert_array_equal(d_off, d_ref)
+        assert f_off == f_ref
+    # First order: the residual is -(dx, dy) . grad(depth) (a dipole across the contact).
+    pose = ContactPose(x_mm=2.0, y_mm=1.0, depth_mm=0.5)
+    d0 = nominal.depth_map(BALL, pose)[0].astype(float)
+    d1 = off.depth_map(BALL, pose)[0].astype(float)
+    gy, gx = np.gradient(d0, 35.0 / 128)  # rows run along -y
+    predicted = -(0.05 * gx + (-0.03) * (-gy))
+    ring = np.abs(predicted) > 0.2 * np.abs(predicted).max()
+    assert np.corrcoef(predicted[ring], (d1 - d0)[ring])[0, 1] > 0.9  # 1 mm mesh vs pixels
+
+
+def test_rotation_offset_changes_only_indenters_that_are_not_round(pad_sim, nominal):
+    from tactile_deploy.indenters import get_indenter
+
+    rot = make_sensor(pad_sim, ("rotation_offset", {"dtheta_deg": 4.0}))
+    pose = ContactPose(x_mm=1.0, y_mm=2.0, theta_deg=10.0, depth_mm=0.5)
+    np.testing.assert_array_equal(rot.depth_map(BALL, pose)[0], nominal.depth_map(BALL, pose)[0])
+    cyl = get_indenter("cylinder_side")
+    turned = pose.model_copy(update={"theta_deg": 14.0})
+    d_rot = rot.depth_map(cyl, pose)[0]
+    np.testing.assert_array_equal(d_rot, nominal.depth_map(cyl, turned)[0])
+    assert np.abs(d_rot - nominal.depth_map(cyl, pose)[0]).max() > 0.05
+
+
+def test_poisson_drift_solves_the_pad_at_the_drifted_ratio(coarse_sim):
+    from tactile_deploy.fem.simulator import ContactSimulator
+    from tactile_deploy.sensors.effects.poisson_drift import PoissonDrift
+
+    sim = coarse_sim
+    mesh = sim.mesh
+    pose = ContactPose(x_mm=0.5, depth_mm=0.5)
+    delta = sim.intrusion(BALL, pose)
+    lin = sim.solve_intrusion(delta)
+    drifted = PoissonDrift(delta_nu=-0.03).correct_contact(sim, delta, lin)
+    ref = ContactSimulator(mesh, sim.material.model_copy(update={"nu": 0.45}), use_cache=False)
+    np.testing.assert_allclose(drifted.displacements_mm, ref.solve(BALL, pose).displacements_mm,
+                               atol=1e-9)
+    # A softer bulk: the surface just outside the contact sinks further, the force drops.
+    xy = mesh.vertices[: mesh.n_plane, :2]
+    r = np.hypot(xy[:, 0] - 0.5, xy[:, 1])
+    ring = (r > 2.5) & (r < 4.5)
+    duz = drifted.displacements_mm[: mesh.n_plane, 2] - lin.displacements_mm[: mesh.n_plane, 2]
+    assert duz[ring].mean() < -1e-3
+    assert drifted.force_n == pytest.approx(lin.force_n * (1 - 0.13), rel=0.05)
+    with pytest.raises(ValueError, match="outside"):
+        PoissonDrift(delta_nu=0.03).correct_contact(sim, delta, lin)
+
+
+def test_compression_set_makes_contacts_over_the_dent_shallower(pad_sim, nominal):
+    dent = make_sensor(pad_sim, ("compression_set", {"depth_mm": 0.06, "x_mm": 3.0,
+                                                     "y_mm": -2.0, "width_mm": 2.0}))
+    over = ContactPose(x_mm=3.0, y_mm=-2.0, depth_mm=0.5)
+    u0, _ = _contact_uz(nominal, BALL, over)
+    u1, _ = _contact_uz(dent, BALL, over)
+    xy = pad_sim.mesh.vertices[: pad_sim.mesh.n_plane, :2]
+    both = (u1 < -1e-9) & np.isclose(u1, -(pad_sim.intrusion(BALL, over) + dent.rest_height_mm(
+        xy)), atol=1e-6)
+    assert both.sum() >= 5
+    sag = 0.06 * np.exp(-((xy[both, 0] - 3.0) ** 2 + (xy[both, 1] + 2.0) ** 2) / 8.0)
+    np.testing.assert_allclose(u1[both] - u0[both], sag, atol=1e-6)
+    far = ContactPose(x_mm=-6.0, y_mm=5.0, depth_mm=0.5)
+    assert np.abs(dent.depth_map(BALL, far)[0] - nominal.depth_map(BALL, far)[0]).max() < 2e-3
+
+
+def test_depth_map_is_the_truth_of_press(pad_sim):
+    tilt = make_sensor(pad_sim, ("tilt", {"angle_deg": 1.0, "azimuth_deg": 40.0}),
+                       ("zero_offset", {"offset_mm": 0.02}))
+    pose = ContactPose(x_mm=-1.0, y_mm=2.0, depth_mm=0.6)
+    depth, force = tilt.depth_map(BALL, pose)
+    out = tilt.press(BALL, pose)
+    np.testing.assert_array_equal(depth, out.depth_mm)
+    assert force == out.force_n

@@ -410,11 +410,18 @@ class VirtualSensor:
     def contact_force_n(self, indenter, pose: ContactPose) -> float:
         """Total normal force (N) of ``indenter`` pressed at ``pose`` (no frame rendered): what a
         force gauge under the sensor reads. 0 when the indenter does not reach the gel."""
-        return self._solve(indenter, pose)[3]
+        result = self.solve_contact(indenter, pose)[2]
+        return 0.0 if result is None else float(result.force_n)
 
-    def _solve(self, indenter, pose: ContactPose):
-        """The contact of :meth:`press` without the frame: ``(indenter, pose reached,
-        intrusion function, force N, ContactResult or None)``."""
+    def solve_contact(self, indenter, pose: ContactPose):
+        """The mechanics of one contact: ``(pose_reached, intrusion, result)``.
+
+        ``intrusion`` maps sensor points (k, 2) mm to the indenter's intrusion (k,) mm below
+        z = 0 after the contact effects; ``result`` is the FEM solution after the material
+        effects (a ``ContactResult``), or None when the indenter does not reach the gel.
+        Raises :class:`tactile_deploy.simulation.contact.ContactError` for depths beyond
+        ``MAX_DEPTH_MM`` or poses off the pad.
+        """
         from tactile_deploy.simulation.contact import ContactError
 
         if isinstance(indenter, str):
@@ -446,16 +453,37 @@ class VirtualSensor:
         node_xy = mesh.vertices[mesh.sensing_nodes, :2]
         delta = intrusion(node_xy) + self.rest_height_mm(node_xy)
         if not np.any(delta > 0):
-            return indenter, reached, intrusion, 0.0, None
+            return reached, intrusion, None
         result = sim.solve_intrusion(delta)
         for e in self._stage("material"):
             result = e.correct_contact(sim, delta, result)
-        return indenter, reached, intrusion, float(result.force_n), result
+        return reached, intrusion, result
+
+    def depth_map(self, indenter, pose: ContactPose) -> tuple[np.ndarray, float]:
+        """The truth of :meth:`press` without a frame: ``(depth_mm, force_n)``.
+
+        depth_mm : (128, 128) float32, mm pushed in, standard depth grid (row 0 = largest y),
+        rendered from the deformed pad mesh (zeros when the indenter does not reach the gel);
+        force_n : total normal force, N.
+        """
+        _, _, result = self.solve_contact(indenter, pose)
+        if result is None:
+            return np.zeros((128, 128), np.float32), 0.0
+        return self._render_depth(result.vertices_mm), float(result.force_n)
+
+    def _render_depth(self, vertices_mm: np.ndarray) -> np.ndarray:
+        if self._depth_camera is None:
+            from tactile_deploy.camera.depth import DepthCamera
+
+            self._depth_camera = DepthCamera()
+        return self._depth_camera.render(self.simulator.mesh, vertices_mm).depth_mm
 
     def _press(self, indenter, pose: ContactPose, rng, truth: bool):
         """``(SensorFrame, ContactResult or None)`` of one contact (see :meth:`press`)."""
-        indenter, reached, intrusion, _, result = self._solve(indenter, pose)
+        if isinstance(indenter, str):
+            indenter = self.indenter(indenter)
         mesh = self.simulator.mesh
+        reached, intrusion, result = self.solve_contact(indenter, pose)
         gain = self._gain(rng)
         meta = {"sensor": self.name, "indenter": getattr(indenter, "name", str(indenter)),
                 "pose": pose.model_dump(), "pose_reached": reached.model_dump()}
@@ -470,13 +498,7 @@ class VirtualSensor:
         height = self.surface.height(result.vertices_mm, rest, intrusion,
                                      (reached.x_mm, reached.y_mm), indenter.footprint_radius_mm)
         frame = self.renderer.render(height, rng, gain)
-        depth = None
-        if truth:
-            if self._depth_camera is None:
-                from tactile_deploy.camera.depth import DepthCamera
-
-                self._depth_camera = DepthCamera()
-            depth = self._depth_camera.render(mesh, result.vertices_mm).depth_mm
+        depth = self._render_depth(result.vertices_mm) if truth else None
         return SensorFrame(frame, depth, (rest - height).astype(np.float32),
                            result.vertices_mm.astype(np.float32) if truth else None,
                            float(result.force_n), pose, reached, True, meta), result

@@ -25,6 +25,11 @@ REGISTRY = {
     "illumination_gradient": "illumination_gradient:IlluminationGradient",
     "saturation": "saturation:Saturation",
     "led_drift": "led_drift:LedDrift",
+    "depth_scale": "depth_scale:DepthScale",
+    "position_offset": "position_offset:PositionOffset",
+    "rotation_offset": "rotation_offset:RotationOffset",
+    "poisson_drift": "poisson_drift:PoissonDrift",
+    "compression_set": "compression_set:CompressionSet",
 }
 
 

@@ -1,0 +1,111 @@
+"""Write a found effect into the sensor model, versioned.
+
+The sensor model is the virtual sensor's JSON (``tactile_deploy.sensors``: pad, material,
+optics, effects). Applying an effect replaces an effect of the same name or appends it, and
+writes the new JSON atomically. Every version is kept beside it::
+
+    gelslim2.json                 the current model (what --sensor ./gelslim2.json loads)
+    gelslim2.versions/
+      v1.json, v2.json, ...        every version, the current one included
+      history.json                 version, file, sha256, time, what changed and why
+
+A shipped sensor (given by name) is never changed in place: its model is copied to
+``<name>.json`` in the chosen folder (version 1 = the shipped model) and the effect goes into
+the copy.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from tactile_deploy.atomic import write_json, write_text
+from tactile_deploy.sensors.config import (
+    EffectSpec,
+    SensorConfigError,
+    VirtualSensorConfig,
+    load_sensor_config,
+)
+
+HISTORY_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class AppliedModel:
+    """path : the current model file; version : its version number; previous : the file of the
+    version before it; history : the history file."""
+
+    path: Path
+    version: int
+    previous: Path
+    history: Path
+
+
+def with_effect(config: VirtualSensorConfig, spec: EffectSpec) -> VirtualSensorConfig:
+    """``config`` with ``spec`` replacing its effect of the same name, or appended."""
+    effects = [e for e in config.effects if e.name != spec.name] + [spec]
+    return VirtualSensorConfig.model_validate({**config.model_dump(), "effects": [
+        e.model_dump() for e in effects]})
+
+
+def _sha256(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, reason: dict,
+                 folder: Path | None = None) -> AppliedModel:
+    """Write ``config`` + ``spec`` as the next version of the model ``sensor``.
+
+    sensor : a model JSON path (changed in place, its versions kept beside it) or a shipped
+    name (copied to ``folder / <name>.json``, default the current folder). reason : what the
+    history records (verdict numbers, measured data).
+    """
+    is_path = sensor.endswith(".json")
+    target = Path(sensor) if is_path else Path(folder or ".") / f"{config.name}.json"
+    if not target.parent.is_dir():
+        raise FileNotFoundError(f"cannot write the sensor model {target}: folder "
+                                f"{target.parent} does not exist")
+    if target.exists() and not is_path:
+        raise FileExistsError(f"{target} exists already: pass it as --sensor {target} to add the "
+                              "effect to that model, or choose another folder")
+    versions = target.with_name(f"{target.stem}.versions")
+    history_path = versions / "history.json"
+    versions.mkdir(exist_ok=True)
+    if history_path.exists():
+        try:
+            history = json.loads(history_path.read_text(encoding="utf-8"))
+            entries = history["versions"]
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise SensorConfigError(f"{history_path}: not a version history ({e}); move it "
+                                    "away to start a new one") from None
+    else:
+        entries = []
+    now = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    current_text = config.model_dump_json(indent=2) + "\n"
+    if is_path:
+        on_disk = load_sensor_config(target).model_dump_json(indent=2) + "\n"
+        if on_disk != current_text:
+            raise SensorConfigError(f"{target} changed since it was read; run the workflow again")
+    if not entries or entries[-1]["sha256"] != _sha256(current_text):
+        k = len(entries) + 1
+        name = f"v{k}.json"
+        write_text(versions / name, current_text)
+        entries.append({"version": k, "file": name, "sha256": _sha256(current_text),
+                        "created": now, "change": ("the model before the discrepancy workflow"
+                                                   if is_path else
+                                                   f"shipped sensor {sensor!r}")})
+    previous = versions / entries[-1]["file"]
+    new = with_effect(config, spec)
+    new_text = new.model_dump_json(indent=2) + "\n"
+    k = len(entries) + 1
+    name = f"v{k}.json"
+    write_text(versions / name, new_text)
+    entries.append({"version": k, "file": name, "sha256": _sha256(new_text), "created": now,
+                    "change": f"effect {spec.name} {json.dumps(spec.params)}", "reason": reason})
+    write_json(history_path, {"format_version": HISTORY_FORMAT, "sensor": config.name,
+                              "current": target.name, "versions": entries})
+    write_text(target, new_text)
+    return AppliedModel(target, k, previous, history_path)

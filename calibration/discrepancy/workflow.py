@@ -1,0 +1,468 @@
+"""The discrepancy workflow, top to bottom: which effect is missing from a sensor model.
+
+Data flow of :func:`find_discrepancy`::
+
+    measured samples (depth maps, or RGB frames through the sensor plugin's imaging pipeline)
+      -> contacts: commanded, or estimated from the maps            (reproduce.py)
+      -> base maps of the sensor model + every candidate's tabulated changes   (tables.py)
+      -> pixel noise from the residual's Laplacian, or as given      (noise.py)
+      -> residual fingerprint                                         (fingerprint.py)
+      -> fits, held-out gains by contact, BIC, effect-free null, bootstrap     (selection.py)
+      -> the best candidate tabulated again around its fit, then re-simulated exactly on
+         held-out contacts: gap before -> after                       (verify_effect)
+      -> look-alikes: the experiment that tells them apart            (experiment.py)
+      -> verdict: effect / ambiguous / unexplained / none             (verdict.py)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.discrepancy.candidates import candidate_library
+from calibration.discrepancy.experiment import distinguishing_experiment
+from calibration.discrepancy.fingerprint import Fingerprint, residual_fingerprint
+from calibration.discrepancy.measured import MeasuredData, MeasuredDataError
+from calibration.discrepancy.noise import NoiseEstimate, estimate_noise, known_noise
+from calibration.discrepancy.reproduce import ContactReproducer
+from calibration.discrepancy.selection import (
+    STRUCTURE_MIN_EXCESS,
+    STRUCTURE_Z,
+    Selection,
+    TableFit,
+    select_effect,
+    sufficient_stats,
+)
+from calibration.discrepancy.tables import (
+    CandidateTable,
+    Contact,
+    ResponseTables,
+    refine_table,
+    tabulate,
+)
+from calibration.discrepancy.verdict import CandidateReport, DiscrepancyVerdict, finite
+from calibration.discrepancy.view_warp import ViewWarp
+from tactile_deploy.sensors.config import EffectSpec
+from tactile_deploy.sensors.virtual import VirtualSensor
+
+#: Share of the residual's excess energy over the noise that the named effect must remove
+#: (held-out, exact), or that it removes together with a second candidate (tables): below it
+#: the structure is reported as unexplained. 0.75 = the systematic gap halved.
+EXPLAIN_MIN = 0.75
+
+
+@dataclass
+class DiscrepancyOptions:
+    """folds : K of the grouped cross-validation; null_replicates : effect-free replicates;
+    bootstrap : resamples of contact groups (gains), param_bootstrap : refits (intervals);
+    candidates : names to consider (None: the whole library); plugin : sensor plugin whose
+    imaging pipeline turns measured frames into depth (default: the sensor's name); workers :
+    processes that tabulate the contacts' responses."""
+
+    folds: int = 5
+    null_replicates: int = 200
+    bootstrap: int = 400
+    param_bootstrap: int = 100
+    seed: int = 0
+    candidates: tuple[str, ...] | None = None
+    plugin: str | None = None
+    workers: int = 1
+
+
+@dataclass
+class Verification:
+    """The named effect re-simulated exactly: parameters fitted on all samples (after a second
+    tabulation around the first fit), and held-out maps with the effect."""
+
+    spec: EffectSpec
+    params: dict
+    intervals: dict
+    after_mm: np.ndarray          # (N, 128, 128) held-out maps with the effect
+    energy_after: np.ndarray      # (N,) squared residual on each ROI, mm^2
+    force_after_n: np.ndarray     # (N,)
+
+
+@dataclass
+class DiscrepancyResult:
+    """Everything the verdict and the report come from."""
+
+    verdict: DiscrepancyVerdict
+    measured: MeasuredData
+    depth_mm: np.ndarray
+    tables: ResponseTables
+    sample_contact: np.ndarray
+    noise: NoiseEstimate
+    fingerprint: Fingerprint
+    selection: Selection
+    verification: Verification | None
+    gap_before_mm: np.ndarray      # (N,) per sample, systematic
+    gap_after_mm: np.ndarray | None
+    timings_s: dict = field(default_factory=dict)
+
+
+def _stage(progress, description: str, total: int):
+    if progress is None:
+        return contextlib.nullcontext(lambda n=1: None)
+    return progress(description, total)
+
+
+def measured_depth_maps(measured: MeasuredData, plugin: str | None, sensor_name: str):
+    """(N, 128, 128) mm depth of the samples and the imaging pipeline used (None for maps)."""
+    if measured.depth_mm is not None:
+        return measured.depth_mm.astype(np.float64), None
+    from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+
+    try:
+        pipeline = ImagingPipeline.from_plugin(SensorPlugin.load(plugin or sensor_name))
+        return np.stack([pipeline.frame_to_depth(f) for f in measured.frames]).astype(
+            np.float64), pipeline
+    except (PluginError, FrameError) as e:
+        raise MeasuredDataError(f"{measured.source}: the frames cannot be turned into depth with "
+                                f"plugin {plugin or sensor_name!r}: {e}; give --plugin, or depth "
+                                "maps") from None
+
+
+def reproduce_contacts(repro: ContactReproducer, measured: MeasuredData, depth: np.ndarray,
+                       progress=None) -> tuple[list[Contact], np.ndarray]:
+    """Unique contacts of the samples (commanded, or estimated per sample) and each sample's
+    index into them."""
+    contacts, index, seen = [], np.zeros(measured.n, np.int64), {}
+    with _stage(progress, "reproducing contacts", measured.n) as advance:
+        for s in range(measured.n):
+            pose = measured.pose(s)
+            c = (Contact(measured.indenter[s], pose) if pose is not None else
+                 Contact(measured.indenter[s], repro.estimate_pose(measured.indenter[s],
+                                                                   depth[s]), True))
+            key = c.key if not c.estimated else ("estimated", s)
+            if key not in seen:
+                seen[key] = len(contacts)
+                contacts.append(c)
+            index[s] = seen[key]
+            advance(1)
+    return contacts, index
+
+
+def image_base_maps(tables: ResponseTables, sensor: VirtualSensor, repro, pipeline) -> None:
+    """Replace the base maps by the sensor model's noise-free frames through ``pipeline`` (the
+    measured maps' imaging path); the FEM changes of the candidates are kept (first order)."""
+    tables.imaging_bias = np.zeros_like(tables.base)
+    for i, c in enumerate(tables.contacts):
+        frame = sensor.press(repro.indenter(c.indenter), c.pose, rng=None, truth=False).frame
+        imaged = pipeline.frame_to_depth(frame).astype(np.float64)
+        tables.imaging_bias[i] = imaged - tables.base[i]
+        tables.base[i] = imaged
+
+
+def prepare_tables(sensor: VirtualSensor, measured: MeasuredData,
+                   options: DiscrepancyOptions | None = None, progress=None) -> ResponseTables:
+    """The response tables of ``measured``'s contacts (reusable for other data of the same
+    commanded contacts: pass them to :func:`find_discrepancy`)."""
+    opts = options or DiscrepancyOptions()
+    repro = ContactReproducer(sensor)
+    depth, pipeline = measured_depth_maps(measured, opts.plugin, sensor.name)
+    contacts, _ = reproduce_contacts(repro, measured, depth, progress)
+    with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
+        tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
+                          opts.workers)
+    if pipeline is not None:
+        image_base_maps(tables, sensor, repro, pipeline)
+    return tables
+
+
+def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
+                     options: DiscrepancyOptions | None = None,
+                     tables: ResponseTables | None = None, progress=None) -> DiscrepancyResult:
+    """Which effect is missing from ``sensor`` given ``measured`` (module docstring)."""
+    opts = options or DiscrepancyOptions()
+    timings = {}
+    t0 = time.perf_counter()
+    repro = ContactReproducer(sensor)
+    depth, pipeline = measured_depth_maps(measured, opts.plugin, sensor.name)
+    contacts, sample_contact = reproduce_contacts(repro, measured, depth, progress)
+    timings["contacts"] = time.perf_counter() - t0
+    if tables is None:
+        with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
+            tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
+                              opts.workers)
+        if pipeline is not None:
+            image_base_maps(tables, sensor, repro, pipeline)
+    elif [c.key for c in tables.contacts] != [c.key for c in contacts]:
+        raise ValueError("the response tables were made for other contacts; prepare them with "
+                         "prepare_tables for these data")
+    timings["tables"] = time.perf_counter() - t0 - timings["contacts"]
+
+    t1 = time.perf_counter()
+    base = tables.base[sample_contact]
+    residual = depth - base
+    noise = (known_noise(measured.noise_mm) if measured.noise_mm is not None
+             else estimate_noise(residual, repro.pad_mask, opts.seed))
+    roi_masks = np.zeros((measured.n, 128, 128), bool)
+    for s in range(measured.n):
+        roi_masks[s].ravel()[tables.roi[sample_contact[s]]] = True
+    centres = np.array([[tables.contacts[i].pose.x_mm, tables.contacts[i].pose.y_mm]
+                        for i in sample_contact])
+    depths = np.array([tables.contacts[i].pose.depth_mm for i in sample_contact])
+    fingerprint = residual_fingerprint(residual, base, centres, depths, measured.indenter,
+                                       roi_masks, repro.pad_mask, noise.sigma_mm, repro.camera)
+    stats = sufficient_stats(tables, depth, sample_contact, measured.contact_id)
+    selection = select_effect(tables, stats, noise, opts.folds, opts.null_replicates,
+                              opts.bootstrap, opts.param_bootstrap, opts.seed)
+    timings["selection"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    verification = None
+    if selection.best is not None:
+        with _stage(progress, f"re-simulating {selection.best} on held-out contacts",
+                    len(tables.contacts)) as advance:
+            verification = verify_effect(repro, tables, selection, depth, sample_contact,
+                                         measured, opts, advance)
+    timings["verification"] = time.perf_counter() - t2
+    sigma2 = noise.sigma_mm**2
+    gap_before = np.sqrt(np.maximum(stats.energy / np.maximum(stats.dof, 1) - sigma2, 0.0))
+    gap_after = None
+    if verification is not None:
+        gap_after = np.sqrt(np.maximum(verification.energy_after / np.maximum(stats.dof, 1)
+                                       - sigma2, 0.0))
+    t3 = time.perf_counter()
+    verdict = decide(sensor, measured, tables, selection, fingerprint, verification, stats,
+                     repro, sample_contact)
+    timings["verdict"] = time.perf_counter() - t3
+    timings["total"] = time.perf_counter() - t0
+    return DiscrepancyResult(verdict, measured, depth, tables, sample_contact, noise,
+                             fingerprint, selection, verification, gap_before, gap_after,
+                             timings)
+
+
+def _table_stats(tables: ResponseTables, table: CandidateTable, depth: np.ndarray,
+                 sample_contact: np.ndarray, extra=None):
+    """Per sample ``D D^T`` (N, M, M) and ``D y`` (N, M) of one table; ``extra`` (per sample
+    ROI vectors or None) is a change already accounted for (subtracted from the residual)."""
+    n, m = len(sample_contact), len(table.node_coords)
+    A, b = np.zeros((n, m, m)), np.zeros((n, m))
+    for s in range(n):
+        i = int(sample_contact[s])
+        if not table.usable[i]:
+            continue
+        d = tables.project(i, table.deltas[i].astype(np.float64))
+        roi = tables.roi[i]
+        y = depth[s].ravel()[roi] - tables.base[i].ravel()[roi]
+        if extra is not None:
+            y = y - extra[s]
+        A[s], b[s] = d @ d.T, d @ tables.project(i, y)
+    return A, b
+
+
+def _second_change(tables: ResponseTables, selection: Selection, sample_contact):
+    """Per sample ROI change of the second effect of a pair at its joint fit (tables), or
+    None without a pair."""
+    if not selection.pair:
+        return None
+    t = tables.table(selection.pair["second"])
+    w = t.weights(selection.pair["coords"][1])[0]
+    return [w @ t.deltas[int(i)].astype(np.float64) for i in sample_contact]
+
+
+#: Rounds of tabulation around the fit (node offsets scaled by these), and when to stop: the
+#: fit moves by less than this share of its range.
+REFINE_SHRINK = (0.5, 0.25, 0.1, 0.04)
+REFINE_TOLERANCE = 0.002
+#: A tabulated value this close to a fold's fit (share of the fit range) stands for its exact
+#: re-simulation.
+REUSE_TOLERANCE = 0.002
+
+
+def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: Selection,
+                  depth: np.ndarray, sample_contact: np.ndarray, measured: MeasuredData,
+                  opts: DiscrepancyOptions, advance) -> Verification:
+    """Tabulate the best candidate again around its fit until the fit settles, refit (all
+    samples and per fold), and re-simulate every sample exactly with the parameters fitted
+    without its fold."""
+    best = selection.stats(selection.best)
+    table = tables.table(best.name)
+    # contacts where the candidate predicts something; a refined node that fails to simulate
+    # (e.g. a neo-Hookean solve beyond the fit) leaves them out of the refined table only
+    predicts = table.usable.copy()
+    # with a second effect present, the named one is fitted jointly (the second's change, from
+    # the tables, held at its joint fit)
+    extra = _second_change(tables, selection, sample_contact)
+    coords = best.coords if extra is None else selection.pair["coords"][0]
+    span = np.array([hi - lo for lo, hi in table.bounds])
+    for shrink in REFINE_SHRINK:
+        table = refine_table(repro, tables, table, coords, shrink)
+        A, b = _table_stats(tables, table, depth, sample_contact, extra)
+        new, _ = TableFit(table).fit(A.sum(0), b.sum(0))
+        moved = float(np.max(np.abs(new - coords) / span))
+        coords = new
+        if moved < REFINE_TOLERANCE:
+            break
+    fitter = TableFit(table)
+    n = len(sample_contact)
+    coords, _ = fitter.fit(A.sum(0), b.sum(0))
+    params = table.params(coords)
+    labels, inverse = np.unique(measured.contact_id, return_inverse=True)
+    rng = np.random.default_rng([opts.seed, 0x76657269])
+    draws = []
+    informative = np.einsum("nii->n", A) > 0
+    for c in rng.multinomial(len(labels), np.full(len(labels), 1.0 / len(labels)),
+                             size=opts.param_bootstrap):
+        w = c[inverse].astype(np.float64)
+        if not np.any(w[informative] > 0):  # no contact that shows the effect
+            continue
+        phi, _ = fitter.fit(np.einsum("n,nij->ij", w, A), w @ b)
+        draws.append(table.params(phi))
+    intervals = {}
+    for key in table.candidate.fitted_params:
+        value = params[key]
+        vals = np.array([d[key] for d in draws])
+        if key == "azimuth_deg":
+            vals = value + (vals - value + 180.0) % 360.0 - 180.0
+        intervals[key] = (float(np.quantile(vals, 0.025)), float(np.quantile(vals, 0.975)))
+
+    after = tables.base[sample_contact].copy()
+    energy_after = np.zeros(n)
+    force_after = np.zeros(n)
+    bias = tables.imaging_bias
+    cache = {}
+    for test in selection.folds:
+        train = ~test
+        phi, _ = fitter.fit(A[train].sum(0), b[train].sum(0))
+        # a tabulated value within REUSE_TOLERANCE of the fold's fit is its exact simulation
+        near = np.flatnonzero(np.all(np.abs(table.node_coords - phi) <= REUSE_TOLERANCE * span,
+                                     axis=1))
+        spec = table.spec(phi)
+        warp = (ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
+                         repro.camera) if table.candidate.route == "view" else None)
+        for s in np.flatnonzero(test):
+            i = int(sample_contact[s])
+            roi = tables.roi[i]
+            key = (i, tuple(np.round(phi, 12)))
+            if key not in cache:
+                c = tables.contacts[i]
+                base = tables.base[i].ravel()[roi]
+                if not predicts[i]:  # the candidate predicts no change there
+                    sim, f = base, tables.base_force[i]
+                elif len(near) and table.usable[i]:
+                    sim, f = base + table.deltas[i][near[0]], table.forces[i, near[0]]
+                elif warp is not None:
+                    sim, f = warp(tables.base[i]).ravel()[roi], tables.base_force[i]
+                else:
+                    try:
+                        full, f = repro.depth_map(c.indenter, c.pose, repro.variant(spec))
+                        if bias is not None:
+                            full = full + bias[i]
+                        sim = full.ravel()[roi]
+                    except (ValueError, RuntimeError):
+                        sim, f = base, tables.base_force[i]
+                cache[key] = (sim, f)
+                advance(1)
+            sim, f = cache[key]
+            if extra is not None:
+                sim = sim + extra[s]
+            after[s].ravel()[roi] = sim
+            force_after[s] = f
+            r = tables.project(i, depth[s].ravel()[roi] - sim)
+            energy_after[s] = float(r @ r)
+    return Verification(table.spec(coords), params, intervals, after, energy_after, force_after)
+
+
+def _force_summary(sensor, measured, tables, sample_contact, verification) -> dict:
+    fm = measured.force_n
+    ok = np.isfinite(fm) & (fm > 0)
+    if not ok.any():
+        return {}
+    E = sensor.config.material.E_mpa
+    f0 = tables.base_force[sample_contact][ok]
+    out = {"n_forces": int(ok.sum()),
+           "gap_before": float(np.sqrt(np.mean(((fm[ok] - f0) / fm[ok]) ** 2))),
+           "E_before_mpa": float(E * (fm[ok] @ f0) / max(f0 @ f0, 1e-300))}
+    if verification is not None:
+        f1 = verification.force_after_n[ok]
+        out["gap_after"] = float(np.sqrt(np.mean(((fm[ok] - f1) / fm[ok]) ** 2)))
+        out["E_after_mpa"] = float(E * (fm[ok] @ f1) / max(f1 @ f1, 1e-300))
+    return out
+
+
+def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerprint,
+           verification: Verification | None, stats, repro, sample_contact) -> DiscrepancyVerdict:
+    """The verdict from the selection, the exact verification and the fingerprint."""
+    sigma2 = selection.noise.sigma_mm**2
+    dof = selection.dof
+    excess_energy = selection.energy - sigma2 * dof
+    gap_before = math.sqrt(max(selection.energy / dof - sigma2, 0.0))
+    structure = selection.structure or fingerprint.outside_structure
+    reports = []
+    for c in selection.candidates:
+        t = tables.table(c.name)
+        reports.append(CandidateReport(
+            name=c.name, kind=t.candidate.kind, testable=c.testable, note=c.note,
+            parameters={k: float(v) for k, v in c.params.items()},
+            intervals={k: (float(a), float(b)) for k, (a, b) in c.intervals.items()},
+            heldout_gain=c.gain, gain_interval=c.gain_interval, delta_bic=c.delta_bic,
+            explained_fraction=c.explained, best_frequency=c.best_frequency,
+            significant=c.significant))
+    est = sum(c.estimated for c in tables.contacts)
+    contacts = "commanded" if est == 0 else "estimated" if est == len(tables.contacts) else "mixed"
+    common = dict(noise_mm=selection.noise.sigma_mm, excess=selection.excess,
+                  excess_z=selection.excess_z, null_threshold=selection.null_threshold,
+                  force=_force_summary(sensor, measured, tables, sample_contact, verification),
+                  candidates=reports, fingerprint=finite(fingerprint.summary), sensor=sensor.name,
+                  n_samples=measured.n, n_contacts=len(tables.contacts), contacts=contacts,
+                  gap_before=gap_before)
+    best = selection.best
+    if best is None:
+        if structure:
+            where = ("outside every contact's reach" if fingerprint.outside_structure
+                     and not selection.structure else "in the contact regions")
+            msg = (f"structure beyond the noise {where} (excess {selection.excess:.3f}, "
+                   f"z {selection.excess_z:.0f}) that no candidate explains; see the fingerprint")
+            return DiscrepancyVerdict(verdict="unexplained", message=msg, **common)
+        return DiscrepancyVerdict(verdict="none", message="the residual is consistent with the "
+                                  "noise: nothing is missing from the model", **common)
+    bs = selection.stats(best)
+    energy_after = float(verification.energy_after.sum())
+    gap_after = math.sqrt(max(energy_after / dof - sigma2, 0.0))
+    explained = (selection.energy - energy_after) / excess_energy if excess_energy > 0 else 0.0
+    x_after = energy_after / (sigma2 * dof) - 1.0
+    z_after = x_after / math.sqrt(2.0 / dof + (2 * selection.noise.se_mm /
+                                               selection.noise.sigma_mm) ** 2)
+    remaining = bool(z_after > STRUCTURE_Z and x_after > STRUCTURE_MIN_EXCESS)
+    second = selection.pair["second"] if selection.pair else None
+    # with a second effect, gap_after and explained are those of both together (the named
+    # effect re-simulated exactly, the second from the tables): apply the first, run again
+    named = dict(effect=best, parameters=verification.params, intervals=verification.intervals,
+                 gap_after=gap_after, explained_fraction=explained,
+                 confidence=bs.best_frequency, remaining_structure=remaining or bool(second),
+                 second_effect=second)
+    if explained < EXPLAIN_MIN:
+        partial = f" (together with {second})" if second else ""
+        msg = (f"structure beyond the noise that no candidate explains: the best, {best}"
+               f"{partial}, removes only {100 * explained:.0f} % of it on held-out contacts; "
+               "see the fingerprint")
+        return DiscrepancyVerdict(verdict="unexplained", message=msg,
+                                  **{**named, "second_effect": None}, **common)
+    if selection.lookalikes:
+        specs = {best: verification.spec}
+        warps = {}
+        for nm in selection.lookalikes:
+            st = selection.stats(nm)
+            specs[nm] = tables.table(nm).spec(st.coords)
+        for nm, spec in specs.items():
+            if tables.table(nm).candidate.route == "view":
+                warps[nm] = ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
+                                     repro.camera)
+        exp = distinguishing_experiment(repro, specs, warps, selection.noise.sigma_mm)
+        msg = (f"{best} or look-alikes {', '.join(selection.lookalikes)} explain the gap "
+               f"about equally well")
+        return DiscrepancyVerdict(verdict="ambiguous", message=msg,
+                                  ambiguous_with=list(selection.lookalikes),
+                                  experiment=exp.get("text"), **named, **common)
+    both = f" together with a second effect, {second} (apply {best}, run again)" if second \
+        else ""
+    msg = (f"{best}{both} explains {100 * explained:.0f} % of the held-out gap's structure "
+           f"({gap_before * 1e3:.2f} -> {gap_after * 1e3:.2f} um)")
+    return DiscrepancyVerdict(verdict="effect", message=msg, **named, **common)

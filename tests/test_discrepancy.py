@@ -1,0 +1,322 @@
+"""The discrepancy workflow on data with hidden effects (fast subset; the full runs are
+``tactile-deploy bench discrepancy``).
+
+Measured data come from a virtual sensor on a small pad (r 10 mm, 1,735 nodes) with one effect
+switched on at a parameter drawn from its realistic range that the workflow is not told; 20
+commanded contacts (spheres of two radii, a flat punch, a lying cylinder), 5 um pixel noise.
+The response tables of those contacts are made once per module and shared by every dataset.
+
+Parameter tolerances (absolute): what 20 contacts at 5 um noise resolve, widened where the
+simulator's 1 mm mesh makes the response to a contact move piecewise (position and rotation:
+nodes switch in and out of contact).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibration.discrepancy.apply import apply_effect
+from calibration.discrepancy.candidates import CANDIDATES, lagrange_weights
+from calibration.discrepancy.measured import (
+    MeasuredDataError,
+    load_measured,
+    save_measured,
+)
+from calibration.discrepancy.noise import estimate_noise
+from calibration.discrepancy.synthetic import draw_hidden, hidden_effect_data, random_contacts
+from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy, prepare_tables
+from tactile_deploy.optics import Light, OpticsModel, simple_camera
+from tactile_deploy.sensors.config import EffectSpec, VirtualSensorConfig, load_sensor_config
+from tactile_deploy.sensors.effects import REGISTRY, effect_class
+from tactile_deploy.sensors.virtual import VirtualSensor
+
+NOISE_MM = 0.005
+OPTS = DiscrepancyOptions(null_replicates=60, bootstrap=200, param_bootstrap=40)
+OPTICS = OpticsModel(
+    camera=simple_camera(160, 120, 0.1, k1=-0.1),
+    lights=(Light(name="r", kind="point", position_mm=(0.0, 25.0, -6.0),
+                  colour_grey=(230, 25, 20)),),
+    ambient_grey=(40.0, 40.0, 45.0))
+TOLERANCE = {"offset_mm": 0.002, "scale": 0.003, "dx_mm": 0.03, "dy_mm": 0.03,
+             "dtheta_deg": 1.0, "angle_deg": 0.1, "azimuth_deg": 5.0, "height_mm": 0.02,
+             "strength": 0.05, "delta_nu": 0.002}
+
+
+@pytest.fixture(scope="module")
+def small_sim():
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.simulator import ContactSimulator
+    from tactile_deploy.pad.geometry import PadGeometry
+    from tactile_deploy.pad.mesh import build_pad_mesh
+
+    mesh = build_pad_mesh(PadGeometry(name="small", radius_mm=10.0, edge_mm=1.0, n_layers=4))
+    sim = ContactSimulator(mesh, Material(nu=0.48))
+    sim.prepare()
+    return sim
+
+
+def make_sensor(sim, effects=()) -> VirtualSensor:
+    cfg = VirtualSensorConfig(name="small", family="gelslim", optics=OPTICS,
+                              effects=tuple(effects))
+    return VirtualSensor(cfg, simulator=sim)
+
+
+@pytest.fixture(scope="module")
+def setup(small_sim):
+    sensor = make_sensor(small_sim)
+    contacts = random_contacts(20, 0, radius_mm=5.5)
+    tables = prepare_tables(sensor, hidden_effect_data(sensor, [], contacts, NOISE_MM, 0))
+    return sensor, contacts, tables
+
+
+# ----------------------------------------------------------------------- hidden effects
+@pytest.mark.parametrize("effect,seed", [
+    ("zero_offset", 1), ("depth_scale", 1), ("position_offset", 1), ("tilt", 1), ("dome", 1),
+    ("hyperelastic", 1), ("poisson_drift", 1), ("rotation_offset", 1), ("tilt", 2)])
+def test_hidden_effect_is_named_recovered_and_closes_the_gap(setup, effect, seed):
+    sensor, contacts, tables = setup
+    truth = draw_hidden(effect, seed)
+    data = hidden_effect_data(sensor, [EffectSpec(name=effect, params=truth)], contacts,
+                              NOISE_MM, seed)
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    print(effect, truth, "->", v.parameters, v.gap_before, v.gap_after)
+    assert v.verdict == "effect" and v.effect == effect
+    assert v.gap_after <= 0.5 * v.gap_before
+    for name, value in truth.items():
+        assert v.parameters[name] == pytest.approx(value, abs=TOLERANCE[name]), name
+    assert v.confidence > 0.9
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_effect_free_data_give_none(setup, seed):
+    sensor, contacts, tables = setup
+    data = hidden_effect_data(sensor, [], contacts, NOISE_MM, seed)
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    assert v.verdict == "none" and v.effect is None
+    assert not any(c.significant for c in v.candidates)
+    assert abs(v.excess) < 0.02
+
+
+def test_effect_left_out_of_the_library_is_unexplained(setup):
+    sensor, contacts, tables = setup
+    dent = EffectSpec(name="compression_set", params={"depth_mm": 0.06, "x_mm": 2.0,
+                                                     "y_mm": 1.0, "width_mm": 2.0})
+    assert "compression_set" not in {c.name for c in CANDIDATES}
+    data = hidden_effect_data(sensor, [dent], contacts, NOISE_MM, 7)
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    assert v.verdict == "unexplained"
+    assert v.excess_z > 10  # there is structure, and it is reported rather than named
+    assert v.fingerprint["where_rms_mm"]["inside_contact"] > 0
+
+
+def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
+    sensor, contacts, tables = setup
+    hidden = [EffectSpec(name="dome", params={"height_mm": 0.3}),
+              EffectSpec(name="zero_offset", params={"offset_mm": 0.02})]
+    data = hidden_effect_data(sensor, hidden, contacts, NOISE_MM, 9)
+    first = find_discrepancy(sensor, data, OPTS, tables=tables)
+    v1 = first.verdict
+    assert v1.verdict == "effect" and v1.effect in ("dome", "zero_offset")
+    other = ({"dome", "zero_offset"} - {v1.effect}).pop()
+    assert v1.second_effect == other and v1.remaining_structure
+    model = tmp_path / "small.json"
+    model.write_text(sensor.config.model_dump_json(indent=2))
+    applied = apply_effect(str(model), sensor.config, first.verification.spec, {"test": 1})
+    updated = VirtualSensor(load_sensor_config(applied.path), simulator=small_sim)
+    v2 = find_discrepancy(updated, data, OPTS).verdict
+    assert v2.verdict == "effect" and v2.effect == other
+    assert v2.gap_after <= 0.5 * v2.gap_before
+
+
+def test_contacts_are_estimated_when_not_commanded(small_sim):
+    sensor = make_sensor(small_sim)
+    contacts = random_contacts(10, 1, radius_mm=5.5, indenters=("sphere_r4", "sphere_r6"))
+    data = hidden_effect_data(sensor, [EffectSpec(name="hyperelastic",
+                                                  params={"strength": 1.0})],
+                              contacts, NOISE_MM, 2, commanded=False)
+    result = find_discrepancy(sensor, data, OPTS)
+    for c, (_, true) in zip(result.tables.contacts, contacts):
+        assert c.estimated
+        assert np.hypot(c.pose.x_mm - true.x_mm, c.pose.y_mm - true.y_mm) < 0.05
+    v = result.verdict
+    assert v.contacts == "estimated"
+    untestable = {c.name for c in v.candidates if not c.testable}
+    assert {"zero_offset", "depth_scale", "position_offset", "rotation_offset"} <= untestable
+    assert v.verdict == "effect" and v.effect == "hyperelastic"
+    assert v.parameters["strength"] == pytest.approx(1.0, abs=0.08)
+
+
+def test_look_alikes_are_reported_as_ambiguous_with_the_experiment_that_separates_them(small_sim):
+    """Every contact pressed to the same 0.5 mm: a zero offset of 0.02 mm and a depth scale of
+    4 % move every contact by the same 0.02 mm, so the data cannot tell them apart; at 1.0 mm
+    they differ by 0.02 mm, at 0.4 mm by 0.004 mm: the experiment is a 1.0 mm press."""
+    sensor = make_sensor(small_sim)
+    contacts = random_contacts(12, 3, radius_mm=5.5, depth_range_mm=(0.5, 0.5))
+    data = hidden_effect_data(sensor, [EffectSpec(name="zero_offset",
+                                                  params={"offset_mm": 0.02})],
+                              contacts, NOISE_MM, 4)
+    v = find_discrepancy(sensor, data, OPTS).verdict
+    assert v.verdict == "ambiguous"
+    assert {v.effect, *v.ambiguous_with} >= {"zero_offset", "depth_scale"}
+    fitted = v.parameters.get("offset_mm", 0.5 * v.parameters.get("scale", np.nan))
+    assert fitted == pytest.approx(0.02, abs=0.002)
+    assert v.experiment is not None and "to 1.0 mm" in v.experiment
+
+
+# ------------------------------------------------------------------------------ pieces
+def test_library_has_ten_registered_candidates_null_at_their_centre():
+    assert len(CANDIDATES) >= 10 and len({c.name for c in CANDIDATES}) == len(CANDIDATES)
+    for c in CANDIDATES:
+        assert c.effect in REGISTRY
+        null = effect_class(c.effect).Params().model_dump()
+        centre = c.coords_of(null)
+        assert np.allclose(centre, 0.0)
+        assert effect_class(c.effect)(c.params_of(centre, null)).is_null
+        for nodes, (lo, hi) in c.axes(centre):
+            assert len(set(np.round(nodes, 12))) == len(nodes) >= 3
+            assert lo <= nodes.min() <= nodes.max() <= hi
+    tilt = next(c for c in CANDIDATES if c.name == "tilt")
+    p = tilt.params_of([0.01, -0.02], {"angle_deg": 0.0, "azimuth_deg": 0.0})
+    assert np.allclose(tilt.coords_of(p), [0.01, -0.02])
+
+
+def test_lagrange_weights_reproduce_quadratics():
+    nodes = np.array([-0.05, 0.0, 0.07])
+    t = np.linspace(-0.1, 0.12, 9)
+    w = lagrange_weights(nodes, t)
+    f = 3.0 - 2.0 * nodes + 40.0 * nodes**2
+    np.testing.assert_allclose(w @ f, 3.0 - 2.0 * t + 40.0 * t**2, rtol=1e-12)
+
+
+def test_noise_is_estimated_under_smooth_structure():
+    rng = np.random.default_rng(0)
+    mask = np.zeros((128, 128), bool)
+    mask[10:118, 10:118] = True
+    y, x = np.mgrid[0:128, 0:128] * (35.0 / 128)
+    smooth = 0.05 * np.exp(-((x - 17) ** 2 + (y - 17) ** 2) / 20.0)  # a 50 um bump, 3 mm wide
+    res = smooth[None] + rng.normal(0.0, 0.004, (12, 128, 128))
+    est = estimate_noise(res, mask)
+    assert est.sigma_mm == pytest.approx(0.004, rel=0.02)
+    assert 0 < est.se_mm < 0.0002
+
+
+def test_view_warp_is_identity_for_the_same_camera_and_stretches_for_pixel_scale(small_sim):
+    from calibration.discrepancy.reproduce import ContactReproducer
+    from calibration.discrepancy.view_warp import ViewWarp
+
+    sensor = make_sensor(small_sim)
+    repro = ContactReproducer(sensor)
+    cam = sensor.optics.camera
+    same = ViewWarp(cam, cam, repro.camera)
+    assert same.max_shift_mm < 1e-9 and np.allclose(same.gain, 1.0)
+    stretched = make_sensor(small_sim, [EffectSpec(name="pixel_scale",
+                                                   params={"anisotropy": 0.05})])
+    warp = ViewWarp(cam, stretched.optics.camera, repro.camera)
+    # a pad point seen at image row offset v is reported at 1 / (1 + a) of its distance along
+    # the rows: q - c = (1 + a) (p - c) along the image's v direction
+    from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
+
+    cy = cam.intrinsics.cy_px
+    row_dir = pixels_to_sensor_mm(np.array([[cam.intrinsics.cx_px, cy + 10.0]]), cam) - \
+        pixels_to_sensor_mm(np.array([[cam.intrinsics.cx_px, cy]]), cam)
+    assert abs(row_dir[0, 1]) > abs(row_dir[0, 0])  # rows run along sensor y here
+    depth, _ = repro.depth_map("sphere_r4", random_contacts(1, 5, radius_mm=0.1)[0][1])
+    seen = warp(depth)
+    assert seen.max() == pytest.approx(depth.max() / np.sqrt(1.05), rel=0.03)
+    cols = (depth > 0.2 * depth.max()).any(axis=1).sum(), (seen > 0.2 * seen.max()).any(
+        axis=1).sum()
+    assert cols[1] < cols[0]  # squeezed along the rows
+
+
+def test_measured_data_round_trip_and_errors(setup, tmp_path):
+    sensor, contacts, _ = setup
+    data = hidden_effect_data(sensor, [], contacts[:4], NOISE_MM, 0)
+    path = tmp_path / "m.npz"
+    save_measured(path, data)
+    back = load_measured(path)
+    np.testing.assert_array_equal(back.depth_mm, data.depth_mm)
+    assert back.indenter == data.indenter and back.pose(2) == data.pose(2)
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    rows = ["indenter,x_mm,y_mm,theta_deg,depth_mm,force_n,depth_file"]
+    for i in range(4):
+        np.save(folder / f"d{i}.npy", data.depth_mm[i])
+        rows.append(f"{data.indenter[i]},{data.x_mm[i]},{data.y_mm[i]},,"
+                    f"{data.depth_cmd_mm[i] if i else ''},{data.force_n[i]},d{i}.npy")
+    (folder / "contacts.csv").write_text("\n".join(rows) + "\n")
+    f = load_measured(folder)
+    assert f.known(1) and not f.known(0) and f.pose(0) is None
+    np.testing.assert_array_equal(f.depth_mm, data.depth_mm)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, indenter=np.array(["sphere_r4"]), depth=np.zeros((1, 64, 64), np.float32))
+    with pytest.raises(MeasuredDataError, match="'depth' must have shape .1, 128, 128.*got "
+                                                "\\(1, 64, 64\\)"):
+        load_measured(bad)
+    with pytest.raises(MeasuredDataError, match="contacts.csv not found"):
+        load_measured(tmp_path)
+
+
+def test_apply_writes_versions_and_keeps_the_previous(small_sim, tmp_path):
+    sensor = make_sensor(small_sim)
+    model = tmp_path / "unit.json"
+    model.write_text(sensor.config.model_dump_json(indent=2) + "\n")
+    first = apply_effect(str(model), load_sensor_config(model),
+                         EffectSpec(name="zero_offset", params={"offset_mm": 0.02}), {"a": 1})
+    second = apply_effect(str(model), load_sensor_config(model),
+                          EffectSpec(name="zero_offset", params={"offset_mm": 0.03}), {"b": 2})
+    assert (first.version, second.version) == (2, 3)
+    history = json.loads(second.history.read_text())
+    assert [v["version"] for v in history["versions"]] == [1, 2, 3]
+    v1 = load_sensor_config(second.history.parent / "v1.json")
+    assert v1.effects == ()
+    now = load_sensor_config(model)
+    assert [(e.name, e.params["offset_mm"]) for e in now.effects] == [("zero_offset", 0.03)]
+    assert second.previous.name == "v2.json"
+    # a shipped sensor is copied, never changed in place, and not overwritten
+    applied = apply_effect("gelslim1", sensor.config.model_copy(update={"name": "gelslim1"}),
+                           EffectSpec(name="dome", params={"height_mm": 0.1}), {}, tmp_path)
+    assert applied.path == tmp_path / "gelslim1.json" and applied.version == 2
+    with pytest.raises(FileExistsError, match="exists already"):
+        apply_effect("gelslim1", sensor.config.model_copy(update={"name": "gelslim1"}),
+                     EffectSpec(name="dome", params={"height_mm": 0.1}), {}, tmp_path)
+
+
+def test_command_prints_json_writes_report_and_applies(pad_sim, tmp_path):
+    from typer.testing import CliRunner
+
+    from tactile_deploy.cli.main import app
+
+    model = tmp_path / "unit.json"
+    cfg = VirtualSensorConfig(name="unit", family="gelslim", optics=OPTICS)
+    model.write_text(cfg.model_dump_json(indent=2) + "\n")
+    sensor = VirtualSensor(cfg, simulator=pad_sim)
+    contacts = random_contacts(8, 4, radius_mm=7.0, indenters=("sphere_r4", "flat_punch"))
+    data = hidden_effect_data(sensor, [EffectSpec(name="zero_offset",
+                                                  params={"offset_mm": 0.03})],
+                              contacts, NOISE_MM, 4)
+    save_measured(tmp_path / "m.npz", data)
+    args = ["discrepancy", "--sensor", str(model), "--measured", str(tmp_path / "m.npz"),
+            "--candidates", "zero_offset,depth_scale,dome,tilt", "--null-replicates", "40",
+            "--folds", "4"]
+    out = CliRunner().invoke(app, [*args, "--json", "--report", str(tmp_path / "rep"),
+                                   "--apply"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads(out.stdout)
+    assert {"verdict", "effect", "parameters", "gap_before", "gap_after", "candidates"} <= set(doc)
+    assert doc["verdict"] == "effect" and doc["effect"] == "zero_offset"
+    assert doc["parameters"]["offset_mm"] == pytest.approx(0.03, abs=0.003)
+    assert doc["gap_after"] < 0.5 * doc["gap_before"]
+    for name in ("report.md", "verdict.json", "residual_maps.png", "candidates.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 0
+    assert [e.name for e in load_sensor_config(model).effects] == ["zero_offset"]
+    assert (tmp_path / "unit.versions" / "v1.json").exists()
+    # with the effect in the model, the same data show nothing missing
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0, again.output
+    assert "verdict: NONE" in again.stdout
+    missing = CliRunner().invoke(app, ["discrepancy", "--sensor", str(model), "--measured",
+                                       str(tmp_path / "nothing.npz")])
+    assert missing.exit_code == 2 and "not found" in " ".join(missing.output.split())
