@@ -235,8 +235,11 @@ def test_sigint_stops_a_looping_run(plugin, tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "tactile_deploy.cli.main", "run", "--sensor", str(plugin.folder),
            "--loop", "--out", str(out), "--every", "50", "--format", "ply", "--no-forces"]
+    # as from a terminal: SIGINT handled by default even if this test runner was started with it
+    # ignored (a background job), which Python would otherwise pass on to the child
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=tmp_path)
+                            cwd=tmp_path,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (out / "mesh_000050.ply").exists():
         time.sleep(0.2)
