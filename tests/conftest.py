@@ -51,3 +51,15 @@ def pad_sim(pad):
     sim = get_simulator(Material(nu=0.48))
     sim.prepare()
     return sim
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module: on a shared 2-core machine two OpenMP threads stall behind
+    other processes (adaptation steps measured 0.7 s with one thread, 2.5-20 s with two)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -24,14 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 STEP = ROOT / "exported" / "gelslim_mesh_adapt"
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """One torch thread: on a shared 2-core machine two OpenMP threads stall behind other
-    processes (the same steps measured 0.7 s with one thread, 2.5-20 s with two)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture()

@@ -39,6 +39,7 @@ the depth camera).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -52,6 +53,51 @@ _CHUNK_ELEMENTS = {"cuda": 1 << 25, "cpu": 1 << 20}
 # Bounding boxes are widened by this much (mm) beyond the edge tolerance before enumerating
 # pixels; the edge functions then decide coverage exactly.
 _BOX_SLACK_MM = 1e-4
+
+
+class DeformedTriangles(NamedTuple):
+    """Geometry of deformed surface triangles, per (sample, triangle); mm, sensor frame.
+
+    uf : (B, t, 3, 3) vertex displacements. ua : (B, t, 3, 3) displacement of each edge's start.
+    ex, ey : (B, t, 3) deformed edge vectors b - a (xy). exs, eys : the same with the edge's
+    orientation and the triangle's winding folded in (exact sign flips), so that the edge
+    function E = cross(b - a, p - a) * sign is >= 0 inside. nx, ny, area2 : (B, t) the
+    triangle's normal (area2: signed double xy area). keep : (B, t) bool, not vertical or
+    degenerate. inv_area : (B, t) 1 / |area2| (1 where not kept).
+    """
+
+    uf: torch.Tensor
+    ua: torch.Tensor
+    ex: torch.Tensor
+    ey: torch.Tensor
+    exs: torch.Tensor
+    eys: torch.Tensor
+    nx: torch.Tensor
+    ny: torch.Tensor
+    area2: torch.Tensor
+    keep: torch.Tensor
+    inv_area: torch.Tensor
+
+
+def deformed_triangles(u: torch.Tensor, faces, edge_a, edge_b, edge_rest, rest_rel,
+                       edge_sign) -> DeformedTriangles:
+    """Deformed triangles of displacements ``u`` (B, n, 3) mm, from the rest tables of a
+    rasteriser: ``faces`` (t, 3), ``edge_a``/``edge_b`` (t, 3) edge end vertices, ``edge_rest``
+    (t, 3, 2) rest edge vectors, ``rest_rel`` (t, 2, 3) rest positions of vertices 1, 2 relative
+    to 0, ``edge_sign`` (t, 3). Shapes are fixed (exportable)."""
+    uf = u[:, faces]
+    ua = u[:, edge_a]
+    ub = u[:, edge_b]
+    ex = edge_rest[..., 0] + (ub[..., 0] - ua[..., 0])
+    ey = edge_rest[..., 1] + (ub[..., 1] - ua[..., 1])
+    rel = rest_rel + (uf[:, :, 1:, :] - uf[:, :, :1, :])  # (B, t, 2, 3)
+    nx = rel[:, :, 0, 1] * rel[:, :, 1, 2] - rel[:, :, 0, 2] * rel[:, :, 1, 1]
+    ny = rel[:, :, 0, 2] * rel[:, :, 1, 0] - rel[:, :, 0, 0] * rel[:, :, 1, 2]
+    area2 = rel[:, :, 0, 0] * rel[:, :, 1, 1] - rel[:, :, 0, 1] * rel[:, :, 1, 0]
+    keep = area2.abs() > _raster._VERTICAL * torch.sqrt(nx * nx + ny * ny + area2 * area2)
+    inv_area = 1.0 / torch.where(keep, area2.abs(), torch.ones_like(area2))
+    sign = edge_sign * torch.where(area2 < 0, -1.0, 1.0).to(u.dtype)[:, :, None]
+    return DeformedTriangles(uf, ua, ex, ey, ex * sign, ey * sign, nx, ny, area2, keep, inv_area)
 
 
 @dataclass(frozen=True)
@@ -208,24 +254,11 @@ class TriangleRasterizer:
         B = u.shape[0]
         t = self.faces.shape[0]
         col0, row0, width, _, count = box
-        uf = u[:, self.faces]  # (B, t, 3 vertices, 3)
-        ua = u[:, self.edge_a]  # (B, t, 3 edges, 3)
-        ub = u[:, self.edge_b]
-        # Deformed edge vectors b - a (B, t, 3) and the triangle's normal (z: signed double area).
-        ex = self.edge_rest[..., 0] + (ub[..., 0] - ua[..., 0])
-        ey = self.edge_rest[..., 1] + (ub[..., 1] - ua[..., 1])
-        rel = self.rest_rel + (uf[:, :, 1:, :] - uf[:, :, :1, :])  # (B, t, 2, 3)
-        nx_ = rel[:, :, 0, 1] * rel[:, :, 1, 2] - rel[:, :, 0, 2] * rel[:, :, 1, 1]
-        ny_ = rel[:, :, 0, 2] * rel[:, :, 1, 0] - rel[:, :, 0, 0] * rel[:, :, 1, 2]
-        area2 = rel[:, :, 0, 0] * rel[:, :, 1, 1] - rel[:, :, 0, 1] * rel[:, :, 1, 0]
-        norm = torch.sqrt(nx_ * nx_ + ny_ * ny_ + area2 * area2)
-        keep = area2.abs() > _raster._VERTICAL * norm  # (B, t); also drops degenerate triangles
-        steep = torch.hypot(nx_, ny_) > _raster._STEEP_GRADIENT * area2.abs()
-        inv_area = 1.0 / torch.where(keep, area2.abs(), torch.ones_like(area2))
-        # Fold the edge orientation and the triangle's winding into the edge vectors (exact sign
-        # flips), so that E >= 0 inside: E = cross(b - a, p - a) * sign.
-        ss = self.edge_sign[None] * torch.where(area2 < 0, -1.0, 1.0).to(u.dtype)[:, :, None]
-        exs, eys = ex * ss, ey * ss
+        tri = deformed_triangles(u, self.faces, self.edge_a, self.edge_b, self.edge_rest,
+                                 self.rest_rel, self.edge_sign)
+        uf, ua, ex, ey, exs, eys = tri.uf, tri.ua, tri.ex, tri.ey, tri.exs, tri.eys
+        keep, inv_area = tri.keep, tri.inv_area
+        steep = torch.hypot(tri.nx, tri.ny) > _raster._STEEP_GRADIENT * tri.area2.abs()
 
         # Pixels of each box: (B, t, P) columns and rows, padding -> the spare pixel slot.
         k = torch.arange(P, device=u.device)

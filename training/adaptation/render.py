@@ -36,7 +36,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from tactile_deploy.raster import EDGE_TOLERANCE_MM, _VERTICAL
+from tactile_deploy.camera.depth_torch import deformed_triangles
+from tactile_deploy.raster import EDGE_TOLERANCE_MM
 
 #: Pixels each triangle visits (see module docstring).
 DEFAULT_PIXELS_PER_TRIANGLE = 36
@@ -156,19 +157,10 @@ class DepthRenderer(nn.Module):
         (exs, eys) (B, t, 3) with E >= 0 inside, edge lengths (B, t, 3), vertex z (B, t, 3),
         1 / twice the xy area (B, t), kept (not vertical) (B, t) bool, displacement of each
         edge's start vertex (B, t, 3, 3)."""
-        uf = u[:, self.faces]  # (B, t, 3, 3)
-        ua = u[:, self.edge_a]
-        ub = u[:, self.edge_b]
-        ex = self.edge_rest[..., 0] + (ub[..., 0] - ua[..., 0])
-        ey = self.edge_rest[..., 1] + (ub[..., 1] - ua[..., 1])
-        rel = self.rest_rel + (uf[:, :, 1:, :] - uf[:, :, :1, :])  # (B, t, 2, 3)
-        nx_ = rel[:, :, 0, 1] * rel[:, :, 1, 2] - rel[:, :, 0, 2] * rel[:, :, 1, 1]
-        ny_ = rel[:, :, 0, 2] * rel[:, :, 1, 0] - rel[:, :, 0, 0] * rel[:, :, 1, 2]
-        area2 = rel[:, :, 0, 0] * rel[:, :, 1, 1] - rel[:, :, 0, 1] * rel[:, :, 1, 0]
-        keep = area2.abs() > _VERTICAL * torch.sqrt(nx_ * nx_ + ny_ * ny_ + area2 * area2)
-        inv_area = 1.0 / torch.where(keep, area2.abs(), torch.ones_like(area2))
-        ss = self.edge_sign * torch.where(area2 < 0, -1.0, 1.0).to(u.dtype)[:, :, None]
-        return ex * ss, ey * ss, torch.hypot(ex, ey), self.rest_z + uf[..., 2], inv_area, keep, ua
+        tri = deformed_triangles(u, self.faces, self.edge_a, self.edge_b, self.edge_rest,
+                                 self.rest_rel, self.edge_sign)
+        return (tri.exs, tri.eys, torch.hypot(tri.ex, tri.ey), self.rest_z + tri.uf[..., 2],
+                tri.inv_area, tri.keep, tri.ua)
 
     def _winners(self, u, col0, row0, width, count) -> torch.Tensor:
         """Triangle seen at each pixel centre (the lowest covering one), (B, ny * nx) int64,
