@@ -17,6 +17,7 @@ Data flow of :func:`find_discrepancy`::
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -117,6 +118,10 @@ def measured_depth_maps(measured: MeasuredData, plugin: str | None, sensor_name:
     from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
 
+    logging.getLogger(__name__).warning(
+        "%s: RGB frames are turned into depth by the plugin's imaging pipeline; verdicts on frames "
+        "are not reliable yet (measured: effect-free gelslim1 frames read as 'unexplained', "
+        "docs/discrepancy.md). Give depth maps ('depth' field) where you can.", measured.source)
     try:
         pipeline = ImagingPipeline.from_plugin(SensorPlugin.load(plugin or sensor_name))
         return np.stack([pipeline.frame_to_depth(f) for f in measured.frames]).astype(
