@@ -16,6 +16,7 @@ the camera mapping). Contacts are in the sensor frame (mm; depth below the gel s
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +56,7 @@ class StationError(RuntimeError):
     """The station cannot do what a step needs (the message says what to change)."""
 
 
-class Station:
+class Station(ABC):
     """Frames, the rig (or the person's hands), and tool changes.
 
     image_size : (W, H) px of the camera. rig : the connected rig, or None.
@@ -67,9 +68,9 @@ class Station:
     #: True when presses need no person (a rig, or a virtual sensor's simulated hand).
     automatic_presses = False
 
+    @abstractmethod
     def grab(self, n: int = 1) -> np.ndarray:
         """``n`` consecutive frames, (n, H, W, 3) uint8 RGB, raw camera pixels."""
-        raise NotImplementedError
 
     def mount(self, tool, ui) -> None:
         """Have ``tool`` mounted on the rig (or at hand)."""

@@ -7,6 +7,7 @@ prints with rich; Ctrl-C at a prompt stops the wizard (its progress is kept). :c
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -22,7 +23,7 @@ def _format(value) -> str:
     return str(value)
 
 
-class BaseUI:
+class BaseUI(ABC):
     """Output shared by both kinds of UI."""
 
     interactive = False
@@ -49,19 +50,22 @@ class BaseUI:
             self.console.print(f"  picture: {f}")
 
     # prompts (subclasses)
+    @abstractmethod
     def choose(self, message: str, choices: Sequence[Choice], default: str) -> str:
-        raise NotImplementedError
+        """The key of the chosen entry."""
 
+    @abstractmethod
     def confirm(self, message: str, default: bool = True) -> bool:
-        raise NotImplementedError
+        """Yes or no."""
 
+    @abstractmethod
     def text(self, message: str, default: str = "",
              validate: Callable[[str], bool | str] | None = None) -> str:
-        raise NotImplementedError
+        """A line of text (``validate`` returns True, or the message to show)."""
 
+    @abstractmethod
     def wait(self, instruction: str) -> None:
         """Ask the person to do something and wait until they say it is done."""
-        raise NotImplementedError
 
 
 class InteractiveUI(BaseUI):
