@@ -259,6 +259,7 @@ def compact_report_pictures(folder: Path) -> None:
 
 def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | None = None) -> dict:
     """Make the shipped plugin ``name`` in ``folder`` (see the module docstring)."""
+    from tactile_deploy.atomic import replace_folder
     from tactile_deploy.runtime.plugins import (
         MANIFEST_NAME,
         SensorPlugin,
@@ -321,13 +322,7 @@ def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | No
         if not report.ok:
             raise SystemExit(f"built plugin {staging} does not validate:\n"
                              + "\n".join(report.problems))
-        if folder.exists():
-            old = folder.parent / f".{folder.name}.old-{os.getpid()}"
-            os.replace(folder, old)
-            os.replace(staging, folder)
-            shutil.rmtree(old)
-        else:
-            os.replace(staging, folder)
+        replace_folder(staging, folder)
     finally:
         if staging.exists():
             shutil.rmtree(staging)
@@ -341,8 +336,6 @@ def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | No
 def relink_model(folder: Path, model: Path) -> dict:
     """Point an existing plugin at a re-exported family model: check the model's contract and
     mesh hash, then record its path and sha256 in ``plugin.json`` (nothing else changes)."""
-    import os
-
     from tactile_deploy.atomic import write_json
     from tactile_deploy.runtime.plugins import MANIFEST_NAME, PluginManifest, file_sha256, load_manifest
     from tactile_deploy.runtime.predictor import check_model_contract

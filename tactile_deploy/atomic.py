@@ -1,13 +1,15 @@
 """Atomic file writing: write to a temporary file beside the target, then rename.
 
 A reader never sees a half-written file, and an interrupted write leaves the previous file (if
-any) untouched.
+any) untouched. Folders are built in a staging folder beside the target and swapped in
+(:func:`replace_folder`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -49,3 +51,17 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 def write_json(path: str | os.PathLike, obj) -> None:
     """Write a JSON document to ``path`` atomically (2-space indent, trailing newline)."""
     write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def replace_folder(staging: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Put the finished folder ``staging`` at ``target`` (same file system), replacing a folder
+    already there: the old one is renamed aside first and deleted only once the new one is in
+    place, so ``target`` is always either the old folder or the new one, never a mix."""
+    staging, target = Path(staging), Path(target)
+    if not target.exists():
+        os.replace(staging, target)
+        return
+    old = target.parent / f".{target.name}.old-{os.getpid()}"
+    os.replace(target, old)
+    os.replace(staging, target)
+    shutil.rmtree(old)

@@ -23,7 +23,7 @@ import numpy as np
 from calibration.wizard.config import WizardConfig
 from calibration.wizard.state import WizardState, WorkFolder
 from calibration.wizard.station import Ball, PinPlate, Station
-from tactile_deploy.atomic import atomic_path, write_json, write_npz
+from tactile_deploy.atomic import atomic_path, replace_folder, write_json, write_npz
 
 
 class StepError(RuntimeError):
@@ -660,13 +660,7 @@ def step_plugin(ctx: Context) -> Outcome:
                    "size (MB)": size_mb,
                    "deepest press, plugin depth max (mm)": float(depth.max())}
         write_report(ctx, tmp / "calibration", {"plugin": metrics}, [fig])
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, out)
+        replace_folder(tmp, out)
         ctx.state.plugin_written = str(out.resolve())
         ctx.work.save(ctx.state)
     finally:
