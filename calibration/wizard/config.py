@@ -16,6 +16,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from tactile_deploy.jsonfile import read_json
+
 FORMAT_VERSION = 1
 SCHEMA_PATH = Path(__file__).with_name("wizard_config.schema.json")
 
@@ -251,11 +253,7 @@ def load_wizard_config(path: str | os.PathLike) -> WizardConfig:
     path = Path(path)
     if not path.is_file():
         raise WizardConfigError(f"wizard config {path} not found")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise WizardConfigError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: "
-                                f"{e.msg})") from None
+    doc = read_json(path, WizardConfigError, "a JSON wizard config")
     return wizard_config_from_dict(doc, str(path))
 
 

@@ -18,12 +18,13 @@ those initializers (no training code, no re-export).
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from tactile_deploy.jsonfile import read_json
 
 CARD_FORMAT = 1
 CARD_FILE = "card.json"
@@ -100,10 +101,7 @@ def load_card(folder: str | os.PathLike) -> AdaptationCard:
     if not path.is_file():
         raise CardError(f"{path} not found: an adaptation step folder holds {CARD_FILE}, {STEP_FILE} and "
                         f"{FILTER_FILE}; export one with `python -m training export-adapt --bundle MODEL.pt`")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise CardError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
+    doc = read_json(path, CardError, "a JSON step card")
     if not isinstance(doc, dict) or doc.get("format_version") != CARD_FORMAT:
         got = doc.get("format_version") if isinstance(doc, dict) else type(doc).__name__
         raise CardError(f"{path}: field 'format_version' must be {CARD_FORMAT}, got {got!r}")

@@ -49,6 +49,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_text
+from tactile_deploy.jsonfile import read_json
 
 #: Version of the camera mapping file format written by :func:`save_mapping`.
 FORMAT_VERSION = 1
@@ -572,13 +573,7 @@ def load_mapping(path: str | os.PathLike) -> CameraMapping:
         raise FileNotFoundError(
             f"camera mapping {path} not found; create one with `tactile-deploy calibrate camera`"
         )
-    text = path.read_text(encoding="utf-8")
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise CameraMappingError(
-            f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"
-        ) from None
+    doc = read_json(path, CameraMappingError, "a JSON camera mapping")
     if not isinstance(doc, dict):
         raise CameraMappingError(f"{path}: expected a JSON object, got {type(doc).__name__}")
     if "format_version" not in doc:

@@ -47,6 +47,7 @@ from tactile_deploy.imaging.camera_mapping import (
     CameraMapping,
     camera_mapping_from_parameters,
 )
+from tactile_deploy.jsonfile import read_json
 
 #: Version of the optics model file format.
 FORMAT_VERSION = 1
@@ -257,11 +258,7 @@ def load_optics(path: str | os.PathLike) -> OpticsModel:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"optics model {path} not found")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise OpticsModelError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: "
-                               f"{e.msg})") from None
+    doc = read_json(path, OpticsModelError, "a JSON optics model")
     if not isinstance(doc, dict) or doc.get("format_version") != FORMAT_VERSION:
         got = doc.get("format_version") if isinstance(doc, dict) else type(doc).__name__
         raise OpticsModelError(f"{path}: field 'format_version' must be {FORMAT_VERSION}, got "

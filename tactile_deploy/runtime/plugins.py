@@ -43,6 +43,7 @@ from pydantic import (
 
 from tactile_deploy.checksums import file_sha256  # noqa: F401 - part of this module's interface
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
+from tactile_deploy.jsonfile import read_json
 from tactile_deploy.runtime.sources.config import SourceConfig
 
 log = logging.getLogger(__name__)
@@ -197,13 +198,7 @@ def load_manifest(path: str | os.PathLike) -> PluginManifest:
     if not path.is_file():
         raise PluginError(f"plugin manifest {path} not found; a plugin folder holds a "
                           f"{MANIFEST_NAME} (see `tactile-deploy plugins list`)")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise PluginError(f"{path}: not a text file (expected a JSON plugin manifest)") from None
-    except json.JSONDecodeError as e:
-        raise PluginError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: "
-                          f"{e.msg})") from None
+    doc = read_json(path, PluginError, "a JSON plugin manifest")
     if not isinstance(doc, dict):
         raise PluginError(f"{path}: expected a JSON object, got {type(doc).__name__}")
     if doc.get("format_version") != FORMAT_VERSION:

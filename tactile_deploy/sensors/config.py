@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from tactile_deploy.atomic import write_text
 from tactile_deploy.fem.material import Material
+from tactile_deploy.jsonfile import read_json
 from tactile_deploy.optics.model import OpticsModel, format_validation_error
 
 FORMAT_VERSION = 1
@@ -91,11 +92,7 @@ def load_sensor_config(path: str | os.PathLike) -> VirtualSensorConfig:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"virtual sensor file {path} not found")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise SensorConfigError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: "
-                                f"{e.msg})") from None
+    doc = read_json(path, SensorConfigError, "a JSON virtual sensor")
     if not isinstance(doc, dict) or doc.get("format_version") != FORMAT_VERSION:
         got = doc.get("format_version") if isinstance(doc, dict) else type(doc).__name__
         raise SensorConfigError(f"{path}: field 'format_version' must be {FORMAT_VERSION}, got "
