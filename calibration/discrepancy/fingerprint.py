@@ -77,11 +77,14 @@ def _growth_law(depth, amp):
 
 def residual_fingerprint(residual_mm: np.ndarray, base_mm: np.ndarray, centres_mm: np.ndarray,
                          depth_mm: np.ndarray, indenters: list[str], roi_masks: np.ndarray,
-                         pad_mask: np.ndarray, sigma_mm: float, camera) -> Fingerprint:
+                         pad_mask: np.ndarray, sigma_mm: float, camera,
+                         outside_noise: tuple[float, float] | None = None) -> Fingerprint:
     """Fingerprint of residuals (N, 128, 128) mm against base maps (N, 128, 128) mm.
 
     centres_mm : (N, 2) contact centres (sensor frame); depth_mm : (N,) contact depths;
-    roi_masks : (N, 128, 128) bool regions a candidate can reach; camera : the DepthCamera.
+    roi_masks : (N, 128, 128) bool regions a candidate can reach; camera : the DepthCamera;
+    outside_noise : (expected sum, standard deviation) of the noise's squared residual outside
+    every ROI, mm^2, when the noise is not white (imaged frames); None: white noise of sigma.
     """
     r = np.asarray(residual_mm, np.float64)
     n = len(r)
@@ -167,8 +170,13 @@ def residual_fingerprint(residual_mm: np.ndarray, base_mm: np.ndarray, centres_m
         for k in range(min(3, len(vt))):
             modes[k] = vt[k].reshape(crops.shape[1:])
     out_sum, out_cnt = zone[2]
-    out_excess = out_sum / (s2 * out_cnt) - 1.0 if out_cnt else 0.0
-    out_z = out_excess / math.sqrt(2.0 / out_cnt) if out_cnt else 0.0
+    if outside_noise is not None and out_cnt:
+        expected, sd = outside_noise
+        out_excess = out_sum / max(expected, 1e-300) - 1.0
+        out_z = (out_sum - expected) / max(sd, 1e-300)
+    else:
+        out_excess = out_sum / (s2 * out_cnt) - 1.0 if out_cnt else 0.0
+        out_z = out_excess / math.sqrt(2.0 / out_cnt) if out_cnt else 0.0
     outside_structure = bool(out_cnt and out_z > 4.0 and out_excess > 0.02)
     summary = {
         "growth_with_depth": {"law": law, "aic": aic, "fit": law_fit,

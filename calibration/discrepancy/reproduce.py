@@ -7,6 +7,10 @@ rendered onto the standard 128 x 128 depth grid). A *variant* is the sensor with
 or changed. Contacts that were not commanded (or not recorded) are estimated from the map as in
 :mod:`calibration.fem_fit.fit`: the maximum-displacement region, then least squares on the depth
 gap.
+
+With measured RGB frames the reproducer carries a :class:`~calibration.discrepancy.imaging.
+FrameImaging`: its maps are then the model's frames through the same imaging pipeline (the
+*imaged* maps), and :meth:`ContactReproducer.surface_map` still gives the FEM's surface.
 """
 
 from __future__ import annotations
@@ -72,8 +76,10 @@ class CachedIndenter:
 class ContactReproducer:
     """Depth maps (128, 128) mm and forces (N) of contacts, for a sensor and its variants."""
 
-    def __init__(self, sensor: VirtualSensor):
+    def __init__(self, sensor: VirtualSensor, imaging=None):
         self.sensor = sensor
+        #: :class:`~calibration.discrepancy.imaging.FrameImaging` or None (maps are the FEM's).
+        self.imaging = imaging
         self._indenters: dict[str, CachedIndenter] = {}
         self._variants: dict[str, VirtualSensor] = {}
         from tactile_deploy.camera.depth import DepthCamera
@@ -105,9 +111,24 @@ class ContactReproducer:
 
     def depth_map(self, indenter: str, pose: ContactPose,
                   sensor: VirtualSensor | None = None) -> tuple[np.ndarray, float]:
-        """``(depth (128, 128) float64 mm, force N)`` of ``indenter`` at ``pose``."""
+        """``(depth (128, 128) float64 mm, force N)`` of ``indenter`` at ``pose``: the imaged
+        map with an imaging path, else the FEM's surface."""
+        if self.imaging is not None:
+            return self.imaging.depth_map(sensor or self.sensor, self.indenter(indenter),
+                                          indenter, pose)
+        return self.surface_map(indenter, pose, sensor)
+
+    def surface_map(self, indenter: str, pose: ContactPose,
+                    sensor: VirtualSensor | None = None) -> tuple[np.ndarray, float]:
+        """``(depth (128, 128) float64 mm, force N)``: the FEM's surface (the depth-map truth)."""
         depth, force = (sensor or self.sensor).depth_map(self.indenter(indenter), pose)
         return depth.astype(np.float64), force
+
+    def noise_maps(self, indenter: str, pose: ContactPose, mean_map: np.ndarray) -> np.ndarray:
+        """(J, 128, 128) float32 mm noise realisations of the model's imaged map of the contact
+        (imaging path only)."""
+        return self.imaging.noise_maps(self.sensor, self.indenter(indenter), indenter, pose,
+                                       mean_map)
 
     def estimate_pose(self, indenter: str, measured_mm: np.ndarray,
                       start: ContactPose | None = None) -> ContactPose:

@@ -8,8 +8,9 @@ Data flow of :func:`select_effect`::
     per candidate: fit on all samples (largest drop of the squared residual on the tables)
                    cross-validation by contact groups (K folds): held-out gain, noise units
                    information criterion (BIC) of the all-sample fit
-    null: effect-free replicates (white noise of the estimated sigma through the same tables
-          and folds) -> the 99th percentile of the best candidate's held-out gain
+    null: effect-free replicates (white noise of the estimated sigma, or for imaged frames the
+          model's own noise realisations, through the same tables and folds) -> the 99th
+          percentile of the best candidate's held-out gain
     bootstrap over contact groups: gain intervals, how often each candidate is best, parameter
           intervals (refits)
     excess energy of the residual over the noise (is anything there?), explained fractions
@@ -51,7 +52,9 @@ PAIR_MIN_SHARE = 0.05
 class SufficientStats:
     """Per sample: gram (N, R, R) = D D^T, proj (N, R) = D y, energy (N,) = y.y (mm^2),
     dof (N,) residual degrees of freedom (ROI pixels minus nuisance dimensions), groups (N,)
-    contact-group labels; blocks: per table the slice of its rows in R."""
+    contact-group labels; blocks: per table the slice of its rows in R; for imaged frames the
+    same of the contact's J noise realisations: noise_proj (N, R, J) = D n_j, noise_energy
+    (N, J) = n_j.n_j (else None)."""
 
     gram: np.ndarray
     proj: np.ndarray
@@ -59,6 +62,8 @@ class SufficientStats:
     dof: np.ndarray
     groups: np.ndarray
     blocks: dict
+    noise_proj: np.ndarray | None = None
+    noise_energy: np.ndarray | None = None
 
 
 def sufficient_stats(tables: ResponseTables, measured_mm: np.ndarray, sample_contact: np.ndarray,
@@ -70,7 +75,7 @@ def sufficient_stats(tables: ResponseTables, measured_mm: np.ndarray, sample_con
         blocks[t.name] = slice(start, start + len(t.node_coords))
         start += len(t.node_coords)
     n = len(sample_contact)
-    gram_c, d_c = [], []
+    gram_c, d_c, nproj_c, nenergy_c = [], [], [], []
     for i in range(len(tables.contacts)):
         rows = []
         for t in tables.tables:
@@ -79,10 +84,19 @@ def sufficient_stats(tables: ResponseTables, measured_mm: np.ndarray, sample_con
         d = tables.project(i, np.concatenate(rows, axis=0))
         d_c.append(d)
         gram_c.append(d @ d.T)
+        if tables.noise_maps is not None:
+            nm = tables.noise_maps[i].reshape(len(tables.noise_maps[i]), -1)
+            y = tables.project(i, nm[:, tables.roi[i]].astype(np.float64))
+            nproj_c.append(d @ y.T)
+            nenergy_c.append(np.einsum("jk,jk->j", y, y))
     gram = np.zeros((n, start, start))
     proj = np.zeros((n, start))
     energy = np.zeros(n)
     dof = np.zeros(n)
+    noise_proj = noise_energy = None
+    if nproj_c:
+        noise_proj = np.stack([nproj_c[int(i)] for i in sample_contact])
+        noise_energy = np.stack([nenergy_c[int(i)] for i in sample_contact])
     for s in range(n):
         i = int(sample_contact[s])
         roi = tables.roi[i]
@@ -93,7 +107,8 @@ def sufficient_stats(tables: ResponseTables, measured_mm: np.ndarray, sample_con
         energy[s] = float(y @ y)
         q = 0 if tables.nuisance[i] is None else tables.nuisance[i].shape[1]
         dof[s] = len(roi) - q
-    return SufficientStats(gram, proj, energy, dof, np.asarray(groups), blocks)
+    return SufficientStats(gram, proj, energy, dof, np.asarray(groups), blocks, noise_proj,
+                           noise_energy)
 
 
 # ------------------------------------------------------------------------------- fitting
@@ -247,7 +262,8 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
             r.best_frequency = float(np.mean(winner == j))
     energy = float(stats.energy.sum())
     excess = energy / (sigma2 * n_pix) - 1.0
-    sd = math.sqrt(2.0 / max(n_pix, 1.0) + (2.0 * noise.se_mm / noise.sigma_mm) ** 2)
+    sd = math.sqrt(2.0 * noise.energy_factor / max(n_pix, 1.0)
+                   + (2.0 * noise.se_mm / noise.sigma_mm) ** 2)
     excess_z = excess / sd
     structure = bool(excess_z > STRUCTURE_Z and excess > STRUCTURE_MIN_EXCESS)
     for nm in names:
@@ -287,17 +303,25 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
 
 
 def _null_gains(tables, stats, testable, fitters, folds, noise, replicates, rng) -> np.ndarray:
-    """Best held-out gain of every replicate of effect-free data (white noise of sigma)."""
+    """Best held-out gain of every replicate of effect-free data: white noise of sigma, or with
+    noise realisations (imaged frames) one of its contact's realisations per sample, with a
+    random sign."""
     if not testable or replicates <= 0:
         return np.zeros(0)
     sigma = noise.sigma_mm
-    vals, vecs = np.linalg.eigh(stats.gram)  # per sample: D D^T = V diag(vals) V^T
-    sqrt_roots = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]  # (N, R, R)
-    R = stats.gram.shape[1]
+    n, R = stats.gram.shape[:2]
+    if stats.noise_proj is None:
+        vals, vecs = np.linalg.eigh(stats.gram)  # per sample: D D^T = V diag(vals) V^T
+        sqrt_roots = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]  # (N, R, R)
     best = np.zeros(replicates)
     for k in range(replicates):
-        z = rng.standard_normal((len(stats.gram), R))
-        proj = sigma * np.einsum("nij,nj->ni", sqrt_roots, z)
+        if stats.noise_proj is None:
+            z = rng.standard_normal((n, R))
+            proj = sigma * np.einsum("nij,nj->ni", sqrt_roots, z)
+        else:
+            j = rng.integers(stats.noise_proj.shape[2], size=n)
+            sign = rng.choice((-1.0, 1.0), size=n)
+            proj = sign[:, None] * stats.noise_proj[np.arange(n), :, j]
         gains = []
         for t in testable:
             red, _ = _cv(fitters[t.name], stats.blocks[t.name], stats.gram, proj, folds,

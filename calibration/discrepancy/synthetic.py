@@ -74,11 +74,14 @@ def draw_hidden(effect: str, seed: int, floor: float = 0.3) -> dict[str, float]:
 
 def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contacts, noise_mm: float,
                        seed: int, force_noise_rel: float = 0.01,
-                       commanded: bool = True) -> MeasuredData:
-    """Depth maps and forces of ``contacts`` pressed into ``sensor`` with ``effects`` added.
+                       commanded: bool = True, frames: bool = False) -> MeasuredData:
+    """Depth maps (or RGB frames) and forces of ``contacts`` pressed into ``sensor`` with
+    ``effects`` added.
 
     noise_mm : white Gaussian pixel noise on the pad (one sigma, mm); the maps are float32.
     commanded : store the commanded contacts (else NaN: the workflow estimates them).
+    frames : store the sensor's camera frames instead (its own camera noise; ``noise_mm`` is
+    not used), as a real sensor delivers them.
     """
     from calibration.discrepancy.reproduce import CachedIndenter
     from tactile_deploy.indenters import get_indenter
@@ -94,18 +97,24 @@ def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contact
     mesh = sensor.simulator.mesh
     mask = DepthCamera().render(mesh, mesh.vertices).mask
     indenters = {}
-    depth, force = [], []
+    depth, images, force = [], [], []
     for name, pose in contacts:
         if name not in indenters:
             indenters[name] = CachedIndenter(get_indenter(name))
-        d, f = hidden.depth_map(indenters[name], pose)
-        depth.append(np.where(mask, d + rng.normal(0.0, noise_mm, d.shape), 0.0))
+        if frames:
+            shot = hidden.press(indenters[name], pose, rng, truth=False)
+            images.append(shot.frame)
+            f = shot.force_n
+        else:
+            d, f = hidden.depth_map(indenters[name], pose)
+            depth.append(np.where(mask, d + rng.normal(0.0, noise_mm, d.shape), 0.0))
         force.append(f * (1.0 + force_noise_rel * rng.standard_normal()))
     n = len(contacts)
     nan = np.full(n, np.nan)
     poses = [p for _, p in contacts]
     return MeasuredData(
-        depth_mm=np.stack(depth).astype(np.float32), frames=None,
+        depth_mm=None if frames else np.stack(depth).astype(np.float32),
+        frames=np.stack(images) if frames else None,
         indenter=[c for c, _ in contacts],
         x_mm=np.array([p.x_mm for p in poses]) if commanded else nan,
         y_mm=np.array([p.y_mm for p in poses]) if commanded else nan,
@@ -114,4 +123,5 @@ def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contact
         force_n=np.array(force), contact_id=np.arange(n),
         source=f"virtual sensor {sensor.name!r} with hidden "
                f"{', '.join(e.name for e in effects) or 'nothing'}",
-        metadata={"hidden": [e.model_dump() for e in effects], "noise_mm": noise_mm})
+        metadata={"hidden": [e.model_dump() for e in effects],
+                  "noise_mm": None if frames else noise_mm})

@@ -14,6 +14,12 @@ every candidate predicts the same map. Fits, cross-validation and the bootstrap 
 tables alone (:mod:`calibration.discrepancy.selection`); the selected effect is re-simulated
 exactly.
 
+With measured frames (the reproducer has an imaging path, :mod:`calibration.discrepancy.imaging`)
+every tabulated map is an imaged map: the base, the candidates' values (optical ones included:
+the variant's frame through the calibrated pipeline, no view warp) and the exact re-simulations;
+the ROI starts from the FEM surface's change (an imaged map is nowhere exactly flat), and each
+contact keeps noise realisations of its imaged base (``noise_maps``).
+
 Contacts estimated from their maps carry the contact itself as base parameters: the change of
 the map per unit change of x, y, depth (and theta) spans a nuisance subspace that is projected out
 of the residual and of every candidate's changes (a linearised joint fit of the contact).
@@ -122,9 +128,9 @@ class ResponseTables:
 
     base : (n, 128, 128) float64 mm; base_force : (n,) N; roi : per contact flat pixel indices;
     nuisance : per contact an orthonormal (n_roi, q) basis of the contact's own changes, or None
-    for commanded contacts; tables : per candidate; imaging_bias : (n, 128, 128) mm, for
-    measured frames: the imaging pipeline's map of the base minus the FEM's (added to every
-    exact re-simulation), else None.
+    for commanded contacts; tables : per candidate; noise_maps : (n, J, 128, 128) float32 mm,
+    for measured frames: noise realisations of each imaged base map (the residual's noise), else
+    None (maps are the FEM's; the noise is estimated from the residual).
     """
 
     contacts: list[Contact]
@@ -133,7 +139,7 @@ class ResponseTables:
     roi: list
     nuisance: list
     tables: list[CandidateTable] = field(default_factory=list)
-    imaging_bias: np.ndarray | None = None
+    noise_maps: np.ndarray | None = None
 
     def table(self, name: str) -> CandidateTable:
         for t in self.tables:
@@ -164,7 +170,7 @@ def _plans(repro: ContactReproducer, candidates: list[Candidate]):
         specs = [EffectSpec(name=cand.effect, params=cand.params_of(nc, current))
                  for nc in node_coords]
         warps = None
-        if cand.route == "view":
+        if cand.route == "view" and repro.imaging is None:
             cal = repro.sensor.optics.camera
             warps = [ViewWarp(cal, repro.variant(s).optics.camera, repro.camera) for s in specs]
         is_centre = np.all(np.isclose(node_coords, centre[None, :], atol=1e-12), axis=1)
@@ -175,7 +181,12 @@ def _plans(repro: ContactReproducer, candidates: list[Candidate]):
 def _tabulate_contact(repro: ContactReproducer, c: Contact, plans) -> dict:
     """Base map, ROI and every candidate's changes on it for one contact."""
     base, base_force = repro.depth_map(c.indenter, c.pose)
-    changed = np.abs(base) > ROI_THRESHOLD_MM
+    noise = None
+    if repro.imaging is None:
+        changed = np.abs(base) > ROI_THRESHOLD_MM
+    else:
+        changed = np.abs(repro.surface_map(c.indenter, c.pose)[0]) > ROI_THRESHOLD_MM
+        noise = repro.noise_maps(c.indenter, c.pose, base)
     per_cand, forces, usable = {}, {}, {}
     for cand, current, centre, axes, node_coords, specs, warps, is_centre in plans:
         m = len(specs)
@@ -206,7 +217,7 @@ def _tabulate_contact(repro: ContactReproducer, c: Contact, plans) -> dict:
     deltas = {name: d.reshape(len(d), -1)[:, roi].astype(np.float32)
               for name, d in per_cand.items()}
     return {"base": base, "base_force": base_force, "roi": roi, "deltas": deltas,
-            "forces": forces, "usable": usable}
+            "forces": forces, "usable": usable, "noise": noise}
 
 
 _WORKER_STATE: dict = {}
@@ -279,7 +290,9 @@ def tabulate(repro: ContactReproducer, contacts: list[Contact], candidates: list
         tables.append(CandidateTable(cand, current, centre, axes, node_coords,
                                      [p["deltas"][cand.name] for p in per],
                                      np.stack([p["forces"][cand.name] for p in per]), use, note))
-    return ResponseTables(contacts, base, base_force, rois, nuisance, tables)
+    noise_maps = None if repro.imaging is None else np.stack([p["noise"] for p in per])
+    return ResponseTables(contacts, base, base_force, rois, nuisance, tables,
+                          noise_maps=noise_maps)
 
 
 def _node_maps(repro: ContactReproducer, tables: ResponseTables, table: CandidateTable,
@@ -288,14 +301,12 @@ def _node_maps(repro: ContactReproducer, tables: ResponseTables, table: Candidat
     candidate at ``specs`` against the base maps; contacts that fail become unusable."""
     cand = table.candidate
     warps = None
-    if cand.route == "view":
+    if cand.route == "view" and repro.imaging is None:
         cal = repro.sensor.optics.camera
         warps = [ViewWarp(cal, repro.variant(s).optics.camera, repro.camera) for s in specs]
     deltas, forces = [], np.zeros((len(tables.contacts), len(specs)))
     for i, c in enumerate(tables.contacts):
-        # view changes act on the maps as measured, FEM changes on the FEM's maps
-        base = tables.base[i] - (tables.imaging_bias[i] if tables.imaging_bias is not None
-                                 and warps is None else 0.0)
+        base = tables.base[i]
         maps = np.repeat(base[None], len(specs), axis=0)
         forces[i] = tables.base_force[i]
         if usable[i] and not (cand.needs_non_round and is_round(c.indenter)):

@@ -5,7 +5,9 @@ Data flow of :func:`find_discrepancy`::
     measured samples (depth maps, or RGB frames through the sensor plugin's imaging pipeline)
       -> contacts: commanded, or estimated from the maps            (reproduce.py)
       -> base maps of the sensor model + every candidate's tabulated changes   (tables.py)
-      -> pixel noise from the residual's Laplacian, or as given      (noise.py)
+         (for frames: the model's frames through the same pipeline, with noise realisations:
+         imaging.py)
+      -> pixel noise from the residual's Laplacian, the realisations, or as given  (noise.py)
       -> residual fingerprint                                         (fingerprint.py)
       -> fits, held-out gains by contact, BIC, effect-free null, bootstrap     (selection.py)
       -> the best candidate tabulated again around its fit, then re-simulated exactly on
@@ -17,7 +19,7 @@ Data flow of :func:`find_discrepancy`::
 from __future__ import annotations
 
 import contextlib
-import logging
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,8 +29,14 @@ import numpy as np
 from calibration.discrepancy.candidates import candidate_library
 from calibration.discrepancy.experiment import distinguishing_experiment
 from calibration.discrepancy.fingerprint import Fingerprint, residual_fingerprint
+from calibration.discrepancy.imaging import FrameImaging
 from calibration.discrepancy.measured import MeasuredData, MeasuredDataError
-from calibration.discrepancy.noise import NoiseEstimate, estimate_noise, known_noise
+from calibration.discrepancy.noise import (
+    NoiseEstimate,
+    estimate_noise,
+    known_noise,
+    noise_from_realisations,
+)
 from calibration.discrepancy.reproduce import ContactReproducer
 from calibration.discrepancy.selection import (
     STRUCTURE_MIN_EXCESS,
@@ -61,7 +69,8 @@ class DiscrepancyOptions:
     """folds : K of the grouped cross-validation; null_replicates : effect-free replicates;
     bootstrap : resamples of contact groups (gains), param_bootstrap : refits (intervals);
     candidates : names to consider (None: the whole library); plugin : sensor plugin whose
-    imaging pipeline turns measured frames into depth (default: the sensor's name); workers :
+    imaging pipeline turns measured frames into depth (default: the sensor's name); pipeline :
+    that pipeline itself (an object with ``frame_to_depth``; overrides ``plugin``); workers :
     processes that tabulate the contacts' responses."""
 
     folds: int = 5
@@ -71,6 +80,7 @@ class DiscrepancyOptions:
     seed: int = 0
     candidates: tuple[str, ...] | None = None
     plugin: str | None = None
+    pipeline: object | None = None
     workers: int = 1
 
 
@@ -111,25 +121,29 @@ def _stage(progress, description: str, total: int):
     return progress(description, total)
 
 
-def measured_depth_maps(measured: MeasuredData, plugin: str | None, sensor_name: str):
-    """(N, 128, 128) mm depth of the samples and the imaging pipeline used (None for maps)."""
+def measured_depth_maps(measured: MeasuredData, opts: DiscrepancyOptions, sensor_name: str):
+    """(N, 128, 128) mm depth of the samples and the imaging pipeline that made them from the
+    measured frames (None for measured maps)."""
     if measured.depth_mm is not None:
         return measured.depth_mm.astype(np.float64), None
     from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
 
-    logging.getLogger(__name__).warning(
-        "%s: RGB frames are turned into depth by the plugin's imaging pipeline; verdicts on frames "
-        "are not reliable yet (measured: effect-free gelslim1 frames read as 'unexplained', "
-        "docs/discrepancy.md). Give depth maps ('depth' field) where you can.", measured.source)
+    name = opts.plugin or sensor_name
     try:
-        pipeline = ImagingPipeline.from_plugin(SensorPlugin.load(plugin or sensor_name))
+        pipeline = opts.pipeline or ImagingPipeline.from_plugin(SensorPlugin.load(name))
         return np.stack([pipeline.frame_to_depth(f) for f in measured.frames]).astype(
             np.float64), pipeline
     except (PluginError, FrameError) as e:
         raise MeasuredDataError(f"{measured.source}: the frames cannot be turned into depth with "
-                                f"plugin {plugin or sensor_name!r}: {e}; give --plugin, or depth "
-                                "maps") from None
+                                f"plugin {name!r}: {e}; give --plugin, or depth maps") from None
+
+
+def reproducer(sensor: VirtualSensor, pipeline, opts: DiscrepancyOptions) -> ContactReproducer:
+    """The contact reproducer: FEM maps, or imaged maps when ``pipeline`` made the measured
+    maps from frames."""
+    return ContactReproducer(sensor, None if pipeline is None
+                             else FrameImaging(pipeline, seed=opts.seed))
 
 
 def reproduce_contacts(repro: ContactReproducer, measured: MeasuredData, depth: np.ndarray,
@@ -152,31 +166,17 @@ def reproduce_contacts(repro: ContactReproducer, measured: MeasuredData, depth: 
     return contacts, index
 
 
-def image_base_maps(tables: ResponseTables, sensor: VirtualSensor, repro, pipeline) -> None:
-    """Replace the base maps by the sensor model's noise-free frames through ``pipeline`` (the
-    measured maps' imaging path); the FEM changes of the candidates are kept (first order)."""
-    tables.imaging_bias = np.zeros_like(tables.base)
-    for i, c in enumerate(tables.contacts):
-        frame = sensor.press(repro.indenter(c.indenter), c.pose, rng=None, truth=False).frame
-        imaged = pipeline.frame_to_depth(frame).astype(np.float64)
-        tables.imaging_bias[i] = imaged - tables.base[i]
-        tables.base[i] = imaged
-
-
 def prepare_tables(sensor: VirtualSensor, measured: MeasuredData,
                    options: DiscrepancyOptions | None = None, progress=None) -> ResponseTables:
     """The response tables of ``measured``'s contacts (reusable for other data of the same
     commanded contacts: pass them to :func:`find_discrepancy`)."""
     opts = options or DiscrepancyOptions()
-    repro = ContactReproducer(sensor)
-    depth, pipeline = measured_depth_maps(measured, opts.plugin, sensor.name)
+    depth, pipeline = measured_depth_maps(measured, opts, sensor.name)
+    repro = reproducer(sensor, pipeline, opts)
     contacts, _ = reproduce_contacts(repro, measured, depth, progress)
     with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
-        tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
-                          opts.workers)
-    if pipeline is not None:
-        image_base_maps(tables, sensor, repro, pipeline)
-    return tables
+        return tabulate(repro, contacts, candidate_library(opts.candidates), advance,
+                        opts.workers)
 
 
 def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
@@ -186,16 +186,18 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
     opts = options or DiscrepancyOptions()
     timings = {}
     t0 = time.perf_counter()
-    repro = ContactReproducer(sensor)
-    depth, pipeline = measured_depth_maps(measured, opts.plugin, sensor.name)
+    depth, pipeline = measured_depth_maps(measured, opts, sensor.name)
+    repro = reproducer(sensor, pipeline, opts)
     contacts, sample_contact = reproduce_contacts(repro, measured, depth, progress)
     timings["contacts"] = time.perf_counter() - t0
     if tables is None:
         with _stage(progress, "tabulating candidate responses", len(contacts)) as advance:
             tables = tabulate(repro, contacts, candidate_library(opts.candidates), advance,
                               opts.workers)
-        if pipeline is not None:
-            image_base_maps(tables, sensor, repro, pipeline)
+    elif (tables.noise_maps is not None) != (pipeline is not None):
+        raise ValueError("the response tables were made for "
+                         f"{'frames' if tables.noise_maps is not None else 'depth maps'}, the "
+                         "measured data are not; prepare them with prepare_tables for these data")
     elif [c.key for c in tables.contacts] != [c.key for c in contacts]:
         raise ValueError("the response tables were made for other contacts; prepare them with "
                          "prepare_tables for these data")
@@ -204,8 +206,16 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
     t1 = time.perf_counter()
     base = tables.base[sample_contact]
     residual = depth - base
-    noise = (known_noise(measured.noise_mm) if measured.noise_mm is not None
-             else estimate_noise(residual, repro.pad_mask, opts.seed))
+    stats = sufficient_stats(tables, depth, sample_contact, measured.contact_id)
+    if stats.noise_energy is not None:
+        noise = noise_from_realisations(stats.noise_energy, stats.dof, opts.seed)
+        if measured.noise_mm is not None:
+            noise = dataclasses.replace(known_noise(measured.noise_mm),
+                                        energy_factor=noise.energy_factor)
+    elif measured.noise_mm is not None:
+        noise = known_noise(measured.noise_mm)
+    else:
+        noise = estimate_noise(residual, repro.pad_mask, opts.seed)
     roi_masks = np.zeros((measured.n, 128, 128), bool)
     for s in range(measured.n):
         roi_masks[s].ravel()[tables.roi[sample_contact[s]]] = True
@@ -213,8 +223,9 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
                         for i in sample_contact])
     depths = np.array([tables.contacts[i].pose.depth_mm for i in sample_contact])
     fingerprint = residual_fingerprint(residual, base, centres, depths, measured.indenter,
-                                       roi_masks, repro.pad_mask, noise.sigma_mm, repro.camera)
-    stats = sufficient_stats(tables, depth, sample_contact, measured.contact_id)
+                                       roi_masks, repro.pad_mask, noise.sigma_mm, repro.camera,
+                                       _outside_noise(tables, sample_contact, roi_masks,
+                                                      repro.pad_mask))
     selection = select_effect(tables, stats, noise, opts.folds, opts.null_replicates,
                               opts.bootstrap, opts.param_bootstrap, opts.seed)
     timings["selection"] = time.perf_counter() - t1
@@ -241,6 +252,21 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
     return DiscrepancyResult(verdict, measured, depth, tables, sample_contact, noise,
                              fingerprint, selection, verification, gap_before, gap_after,
                              timings)
+
+
+def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks: np.ndarray,
+                   pad_mask: np.ndarray):
+    """(expected sum, standard deviation) of the noise's squared residual outside every
+    sample's ROI, from the noise realisations (imaged frames), mm^2; None without them."""
+    if tables.noise_maps is None:
+        return None
+    mean = var = 0.0
+    for s, i in enumerate(sample_contact):
+        out = pad_mask & ~roi_masks[s]
+        e = np.einsum("jk,jk->j", *(tables.noise_maps[int(i)][:, out].astype(np.float64),) * 2)
+        mean += float(e.mean())
+        var += float(e.var(ddof=1))
+    return mean, math.sqrt(var)
 
 
 def _table_stats(tables: ResponseTables, table: CandidateTable, depth: np.ndarray,
@@ -331,7 +357,6 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     after = tables.base[sample_contact].copy()
     energy_after = np.zeros(n)
     force_after = np.zeros(n)
-    bias = tables.imaging_bias
     cache = {}
     for test in selection.folds:
         train = ~test
@@ -341,7 +366,8 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
                                      axis=1))
         spec = table.spec(phi)
         warp = (ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
-                         repro.camera) if table.candidate.route == "view" else None)
+                         repro.camera)
+                if table.candidate.route == "view" and repro.imaging is None else None)
         for s in np.flatnonzero(test):
             i = int(sample_contact[s])
             roi = tables.roi[i]
@@ -358,8 +384,6 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
                 else:
                     try:
                         full, f = repro.depth_map(c.indenter, c.pose, repro.variant(spec))
-                        if bias is not None:
-                            full = full + bias[i]
                         sim = full.ravel()[roi]
                     except (ValueError, RuntimeError):
                         sim, f = base, tables.base_force[i]
@@ -433,8 +457,8 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
     gap_after = math.sqrt(max(energy_after / dof - sigma2, 0.0))
     explained = (selection.energy - energy_after) / excess_energy if excess_energy > 0 else 0.0
     x_after = energy_after / (sigma2 * dof) - 1.0
-    z_after = x_after / math.sqrt(2.0 / dof + (2 * selection.noise.se_mm /
-                                               selection.noise.sigma_mm) ** 2)
+    z_after = x_after / math.sqrt(2.0 * selection.noise.energy_factor / dof
+                                  + (2 * selection.noise.se_mm / selection.noise.sigma_mm) ** 2)
     remaining = bool(z_after > STRUCTURE_Z and x_after > STRUCTURE_MIN_EXCESS)
     second = selection.pair["second"] if selection.pair else None
     # with a second effect, gap_after and explained are those of both together (the named
@@ -457,7 +481,7 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
             st = selection.stats(nm)
             specs[nm] = tables.table(nm).spec(st.coords)
         for nm, spec in specs.items():
-            if tables.table(nm).candidate.route == "view":
+            if tables.table(nm).candidate.route == "view" and repro.imaging is None:
                 warps[nm] = ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
                                      repro.camera)
         exp = distinguishing_experiment(repro, specs, warps, selection.noise.sigma_mm)

@@ -425,9 +425,13 @@ class OpticsRenderer:
         # cv2.add into an 8-bit output rounds to nearest and saturates (saturate_cast).
         return cv2.add(img, 0.0, dtype=cv2.CV_8U)
 
-    def finish(self, radiance: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """Noise (when ``rng`` is given), round, saturate: blurred radiance (H, W, 3) -> uint8."""
-        return self._finish(radiance, (0, self.shape[0], 0, self.shape[1]), rng)
+    def finish(self, radiance: np.ndarray, rng: np.random.Generator | None,
+               gain=None) -> np.ndarray:
+        """Noise (when ``rng`` is given), round, saturate: blurred radiance (H, W, 3) -> uint8.
+
+        gain : as in :meth:`render` (per-frame camera effects), or None.
+        """
+        return self._finish(radiance, (0, self.shape[0], 0, self.shape[1]), rng, gain)
 
     def render(self, height_mm: np.ndarray, rng: np.random.Generator | None = None,
                gain=None) -> np.ndarray:

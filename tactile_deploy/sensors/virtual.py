@@ -362,6 +362,25 @@ class VirtualSensor:
         """
         return self._press(indenter, pose, rng, truth)[0]
 
+    def press_frames(self, indenter, pose: ContactPose,
+                     rngs: list[np.random.Generator]) -> tuple[list[np.ndarray], float]:
+        """Frames of one contact under several noise draws: ``(frames, force_n)``.
+
+        One FEM solve and one shading for all of them; each frame is :meth:`press`'s frame
+        with its own ``rng`` (camera noise and per-frame camera effects), (H, W, 3) uint8.
+        Raises what :meth:`press` raises.
+        """
+        if isinstance(indenter, str):
+            indenter = self.indenter(indenter)
+        reached, intrusion, result = self.solve_contact(indenter, pose)
+        renderer = self.renderer
+        if result is None:
+            return [renderer.reference_frame(r, self._gain(r)) for r in rngs], 0.0
+        height = self.surface.height(result.vertices_mm, renderer.rest_height_mm, intrusion,
+                                     (reached.x_mm, reached.y_mm), indenter.footprint_radius_mm)
+        radiance = renderer.blurred_radiance(height)
+        return [renderer.finish(radiance, r, self._gain(r)) for r in rngs], float(result.force_n)
+
     def contact_sample(self, indenter, pose: ContactPose,
                        rng: np.random.Generator | None = None):
         """The contact as a :class:`~tactile_deploy.simulation.contact.ContactSample` (the
