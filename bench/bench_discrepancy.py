@@ -83,7 +83,8 @@ def run(sensor_name: str, seeds: int, n_contacts: int, null_seeds: int, runtime_
 
     sensor = load_sensor(sensor_name)
     sensor.simulator.prepare()
-    opts = DiscrepancyOptions(workers=workers)
+    # frames are imaged by the sensor's plugin, also for the updated models of the pairs
+    opts = DiscrepancyOptions(workers=workers, plugin=sensor_name if frames else None)
     hidden_effects = HIDDEN + (HIDDEN_OPTICAL if frames else ())
     hidden_effect_data = functools.partial(_hidden_effect_data, frames=frames)
 

@@ -138,7 +138,10 @@ class ContactReproducer:
         largest depth (the best of 24 angles for indenters that are not round); then a grid of
         positions (+-0.6 mm), least squares on x, y, depth and theta over the pad pixels' depth
         gap, and a simplex polish. Theta stays free for round indenters too: their facets
-        switch nodes of the 1 mm mesh in and out of contact.
+        switch nodes of the 1 mm mesh in and out of contact. With an imaging path the search
+        compares the FEM's surface with the measured map (hundreds of maps, ten times cheaper
+        than imaged ones); what the pipeline's error moves the pose by is first order and is
+        removed with the contact's nuisance subspace (:meth:`pose_jacobian`, imaged maps).
         """
         round_shape = is_round(indenter)
         mask = self.pad_mask
@@ -146,7 +149,7 @@ class ContactReproducer:
 
         def gap(pose):
             try:
-                sim, _ = self.depth_map(indenter, pose)
+                sim, _ = self.surface_map(indenter, pose)
             except ValueError:  # off the pad or too deep: a large, smooth penalty
                 return measured[mask] + 1.0
             return (sim - measured)[mask]

@@ -90,6 +90,12 @@ class DiscrepancyVerdict(BaseModel):
     remaining_structure: bool = Field(False, description="Structure beyond the noise remains "
                                       "after the named effect.")
     noise_mm: float = Field(description="Pixel noise, one sigma, mm.")
+    noise_source: str = Field("", description="How the noise was found: the residual's "
+                              "Laplacian, given with the data, or realisations of the model's "
+                              "imaged frames.")
+    noise_energy_factor: float = Field(1.0, description="Variance of the squared residual over "
+                                       "white noise's (1: white; larger: correlated noise, as "
+                                       "in depth integrated from shading).")
     excess: float = Field(description="Residual energy over the noise's, minus 1.")
     excess_z: float
     null_threshold: float = Field(description="99th percentile of the best held-out gain on "
@@ -119,7 +125,9 @@ def _fmt_params(params: dict, intervals: dict) -> str:
 def verdict_text(v: DiscrepancyVerdict) -> str:
     """The verdict as a person reads it (several lines)."""
     lines = [f"sensor {v.sensor}: {v.n_samples} samples, {v.n_contacts} contacts "
-             f"({v.contacts}); pixel noise {v.noise_mm * 1e3:.2f} um",
+             f"({v.contacts}); pixel noise {v.noise_mm * 1e3:.2f} um"
+             + (f" (correlated: squared residual {v.noise_energy_factor:.0f}x as variable as "
+                "white noise's)" if v.noise_energy_factor > 1.5 else ""),
              f"verdict: {v.verdict.upper()}  {v.message}"]
     if v.effect and v.verdict in ("effect", "ambiguous"):
         lines.append(f"  {v.effect}: {_fmt_params(v.parameters, v.intervals)}")

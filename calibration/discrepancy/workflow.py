@@ -263,7 +263,8 @@ def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks
     mean = var = 0.0
     for s, i in enumerate(sample_contact):
         out = pad_mask & ~roi_masks[s]
-        e = np.einsum("jk,jk->j", *(tables.noise_maps[int(i)][:, out].astype(np.float64),) * 2)
+        draws = tables.noise_maps[int(i)][:, out].astype(np.float64)  # (J, pixels outside)
+        e = np.einsum("jk,jk->j", draws, draws)
         mean += float(e.mean())
         var += float(e.var(ddof=1))
     return mean, math.sqrt(var)
@@ -436,7 +437,8 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
             significant=c.significant))
     est = sum(c.estimated for c in tables.contacts)
     contacts = "commanded" if est == 0 else "estimated" if est == len(tables.contacts) else "mixed"
-    common = dict(noise_mm=selection.noise.sigma_mm, excess=selection.excess,
+    common = dict(noise_mm=selection.noise.sigma_mm, noise_source=selection.noise.source,
+                  noise_energy_factor=selection.noise.energy_factor, excess=selection.excess,
                   excess_z=selection.excess_z, null_threshold=selection.null_threshold,
                   force=_force_summary(sensor, measured, tables, sample_contact, verification),
                   candidates=reports, fingerprint=finite(fingerprint.summary), sensor=sensor.name,
