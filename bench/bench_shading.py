@@ -320,11 +320,12 @@ def virtual_accuracy(small: bool = False) -> dict:
             name: near_contact_errors([pipeline.frame_to_depth(f) for f in new.frames], new)
             for name, new in sets.items()}
         if key == "fem, colour prior":
-            # the most a per-pixel confidence weighting of the integration could gain
-            out["errors"]["oracle weights"] = {
-                name: near_contact_errors(oracle_weighted_depths(pipeline, new,
-                                                                 ORACLE_FLOOR_SLOPE), new)
-                for name, new in sets.items()}
+            wizard_pipeline = pipeline
+    # the most a per-pixel confidence weighting of the integration could gain
+    out["errors"]["oracle weights"] = {
+        name: near_contact_errors(oracle_weighted_depths(wizard_pipeline, new,
+                                                         ORACLE_FLOOR_SLOPE), new)
+        for name, new in sets.items()}
     # the true gradients on the imaging grid, integrated with the zero border
     to_imaging = GridResampler(OutputGrid(), camera.grid)
     to_model = GridResampler(camera.grid, OutputGrid())
