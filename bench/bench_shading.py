@@ -27,7 +27,9 @@ pipeline on two sets of new presses (:mod:`calibration.shading.virtual_check`): 
 at least two contact radii inside the view, 8 within 1.2-1.7 contact radii of its edges) and a
 larger second set with another seed (24 inside, 8 near the edges), so that a setting is not
 judged on 8 presses alone; beside them the integration of the presses' true gradients, i.e.
-what the zero-depth border of the integration costs by itself.
+what the zero-depth border of the integration costs by itself, and the wizard's model integrated
+with a weight per pixel from its gradients' true error (an oracle: the most that weighting the
+integration by the table's confidence could gain).
 """
 
 from __future__ import annotations
@@ -197,13 +199,13 @@ def markdown(presses, comp, folds: int, timings: dict) -> str:
     lines = [
         "## Marble shading model on real ball presses (`tactile-deploy bench shading`)",
         "",
-        f"{machine_line()}. Data: `../shared/data/real/fots_gelsight_ballpress` ({len(presses)} "
+        (f"{machine_line()}. Data: `../shared/data/real/fots_gelsight_ballpress` ({len(presses)} "
         f"presses of a 4.70 mm ball, 240 x 320 px, 19.58 px/mm). Grouped {folds}-fold "
         "cross-validation (press i in fold i mod k; same folds, labelled circles and evaluation "
         "for the three methods). Shape error: RMS residual to the sphere of the ball's radius "
         "(centre and offset free) inside 0.8 x the labelled contact radius; fitted radius: the "
         "same fit with the radius free; centre/edge: the halves nearest to / farthest from the "
-        "image centre.",
+        "image centre."),
         "",
         markdown_table({METHOD_NAMES[k]: v for k, v in comp.summaries.items()}),
         "",
@@ -215,8 +217,8 @@ def markdown(presses, comp, folds: int, timings: dict) -> str:
         + ", ".join(f"{METHOD_NAMES[k].split(' (')[0]} {v:.1f} s" for k, v in
                     comp.seconds.items()) + ".",
         "",
-        "| step (one 240 x 320 frame, one thread; medians) | wall | CPU | CPU vs the reference "
-        "RGB table's frame -> depth |",
+        ("| step (one 240 x 320 frame, one thread; medians) | wall | CPU | CPU vs the reference "
+        "RGB table's frame -> depth |"),
         "|---|---:|---:|---:|",
     ]
     for k, (wall, cpu) in timings.items():
@@ -234,6 +236,8 @@ VIRTUAL_WIZARD = {"description": "bench", "reference": {"n_frames": 6}, "camera"
                   "fem": {"enabled": False},
                   "rig": {"approach_step_mm": 0.2, "approach_clearance_mm": 0.4}}
 VIRTUAL_SENSOR = "gelslim2"
+#: Floor of the oracle weights 1 / (gradient error^2 + floor^2), mm per mm (0.005-0.01 is best).
+ORACLE_FLOOR_SLOPE = 0.005
 
 
 def virtual_accuracy(small: bool = False) -> dict:
@@ -247,7 +251,11 @@ def virtual_accuracy(small: bool = False) -> dict:
 
     from calibration.shading.fit import fit_shading
     from calibration.shading.presses import PressSet
-    from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
+    from calibration.shading.virtual_check import (
+        near_contact_errors,
+        oracle_weighted_depths,
+        virtual_ball_presses,
+    )
     from calibration.wizard.config import wizard_config_from_dict
     from calibration.wizard.state import WorkFolder
     from calibration.wizard.steps import (
@@ -311,6 +319,13 @@ def virtual_accuracy(small: bool = False) -> dict:
         out["errors"][key] = {
             name: near_contact_errors([pipeline.frame_to_depth(f) for f in new.frames], new)
             for name, new in sets.items()}
+        if key == "fem, colour prior":
+            wizard_pipeline = pipeline
+    # the most a per-pixel confidence weighting of the integration could gain
+    out["errors"]["oracle weights"] = {
+        name: near_contact_errors(oracle_weighted_depths(wizard_pipeline, new,
+                                                         ORACLE_FLOOR_SLOPE), new)
+        for name, new in sets.items()}
     # the true gradients on the imaging grid, integrated with the zero border
     to_imaging = GridResampler(OutputGrid(), camera.grid)
     to_model = GridResampler(camera.grid, OutputGrid())
@@ -350,6 +365,9 @@ VIRTUAL_NAMES = {
                          "wizard's default now)",
     "fem, colour prior, exact camera": "the same, presses rectified by the virtual camera's own "
                                        "mapping instead of the fitted one",
+    "oracle weights": "the wizard's default model, its gradients integrated with a weight per "
+                      "pixel from their true error, 1 / (error^2 + 0.005^2) (an oracle: the most "
+                      "a confidence-weighted integration could gain)",
     "true gradients": "reference: the true gradients integrated (zero border)"}
 VIRTUAL_SETS = {"bench": "new presses, seed 2024", "second": "second set, seed 77"}
 
@@ -367,19 +385,19 @@ def virtual_markdown(res: dict) -> str:
     lines = [
         "## Absolute depth on virtual-sensor ball presses (`tactile-deploy bench shading`)",
         "",
-        f"{machine_line()}. The calibration wizard on `virtual:{VIRTUAL_SENSOR}` with the "
+        (f"{machine_line()}. The calibration wizard on `virtual:{VIRTUAL_SENSOR}` with the "
         f"simulated rig ({res['presses']} presses of a 3 mm ball, 0.3-0.9 mm), the shading "
         "model fitted on its presses as stated, the runtime's imaging pipeline on new presses "
         f"(0.3-0.8 mm deep; {counts}) against the surface their frames were shaded from (model "
         "grid). RMSE within 1.5 contact radii (a = sqrt(2 R d)), peak: estimated minus true "
-        "maximum depth, whole: the whole model grid; um.",
+        "maximum depth, whole: the whole model grid; um."),
     ]
     for name, new in sets.items():
         inside, edge = ~new.near_edge, new.near_edge
         lines += [
             "", f"{VIRTUAL_SETS[name].capitalize()}:", "",
-            "| shading model | inside: RMSE near, mean | worst | mean abs peak | whole-frame mean "
-            "| near the edges: RMSE near, mean | worst | mean abs peak |",
+            ("| shading model | inside: RMSE near, mean | worst | mean abs peak | whole-frame mean "
+            "| near the edges: RMSE near, mean | worst | mean abs peak |"),
             "|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for key, per_set in res["errors"].items():
@@ -391,9 +409,9 @@ def virtual_markdown(res: dict) -> str:
                 f"{e['whole'][inside].mean():.1f} | {e['near'][edge].mean():.1f} | "
                 f"{e['near'][edge].max():.1f} | {np.abs(e['peak'][edge]).mean():.0f} |")
     cam = res["camera"]
-    lines += ["", f"The fitted camera mapping samples the frame {cam['mean']:.2f} mm from where the "
+    lines += ["", (f"The fitted camera mapping samples the frame {cam['mean']:.2f} mm from where the "
               f"virtual camera's does on average over the imaging grid, {cam['edge_band']:.2f} mm "
-              f"in the band of 8 cells along its edges, {cam['max']:.2f} mm at most."]
+              f"in the band of 8 cells along its edges, {cam['max']:.2f} mm at most.")]
     now = res["errors"]["fem, colour prior"]
     parts = []
     for name, new in sets.items():

@@ -84,3 +84,38 @@ def near_contact_errors(depths_mm, presses: VirtualPresses, near_radii: float = 
         near.append(np.sqrt(np.mean((d[m] - t[m]) ** 2)) * 1e3)
         peak.append((float(d.max()) - float(t.max())) * 1e3)
     return {"whole": np.array(whole), "near": np.array(near), "peak": np.array(peak)}
+
+
+def oracle_weighted_depths(pipeline, presses: VirtualPresses,
+                           floor_slope: float = 0.005) -> np.ndarray:
+    """Depth maps (N, 128, 128) float32 mm of ``presses`` through ``pipeline`` (an
+    :class:`~tactile_deploy.runtime.pipeline.ImagingPipeline`), its shading gradients integrated
+    with a weight per pixel and axis of ``1 / (error^2 + floor_slope^2)``, the error being the
+    gradient's difference from the truth's (mm per mm, imaging grid): the most a confidence
+    weighting of the integration could gain (an oracle: a calibration cannot know the error).
+    """
+    from tactile_deploy.imaging.camera_mapping import OutputGrid
+    from tactile_deploy.runtime.pipeline import (
+        GridResampler,
+        apply_noise_reference,
+        shading_gradients,
+        subtract_reference,
+        to_model_grid,
+    )
+
+    from .weighted_poisson import integrate_weighted
+
+    to_imaging = GridResampler(OutputGrid(), pipeline.camera.grid)
+    s = float(pipeline.tables.mm_per_px)
+    out = []
+    for frame, truth in zip(presses.frames, presses.truths):
+        image = pipeline.rectify(frame)
+        g_col, g_row = shading_gradients(subtract_reference(image, pipeline.tables), image,
+                                         pipeline.tables)
+        t_row, t_col = np.gradient(to_imaging(truth).astype(np.float64), s)
+        z = integrate_weighted(g_col * s, g_row * s,
+                               1.0 / ((g_col - t_col) ** 2 + floor_slope ** 2),
+                               1.0 / ((g_row - t_row) ** 2 + floor_slope ** 2))
+        depth = to_model_grid(z.astype(np.float32), pipeline.resampler)
+        out.append(apply_noise_reference(depth, pipeline.noise_mm, pipeline.noise_handling))
+    return np.stack(out)
