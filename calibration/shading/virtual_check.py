@@ -26,7 +26,9 @@ class VirtualPresses:
 
     frames : (N, H, W, 3) uint8 RGB raw camera frames. truths : (N, 128, 128) float32 mm, the
     surface they were shaded from on the model grid. centres_mm : (N, 2) sensor frame (the pose
-    reached). radii_mm : (N,) rigid contact radius. near_edge : (N,) bool.
+    reached). radii_mm : (N,) rigid contact radius. near_edge : (N,) bool. surfaces_mm : (N,
+    ny, nx) float32 mm, the same surfaces on the sensor's optics grid (``surface_grid``, about
+    0.04 mm), or None when not kept.
     """
 
     frames: np.ndarray
@@ -34,12 +36,16 @@ class VirtualPresses:
     centres_mm: np.ndarray
     radii_mm: np.ndarray
     near_edge: np.ndarray
+    surfaces_mm: np.ndarray | None = None
+    surface_grid: object = None
 
 
 def virtual_ball_presses(sensor, grid, n_inside: int = 8, n_edge: int = 8, seed: int = 2024,
                          ball_radius_mm: float = 3.0,
-                         depth_range_mm: tuple[float, float] = (0.3, 0.8)) -> VirtualPresses:
-    """Ball presses of ``sensor`` placed on the imaging ``grid`` (module docstring)."""
+                         depth_range_mm: tuple[float, float] = (0.3, 0.8),
+                         keep_surfaces: bool = False) -> VirtualPresses:
+    """Ball presses of ``sensor`` placed on the imaging ``grid`` (module docstring);
+    ``keep_surfaces`` also keeps each surface at the optics grid's resolution."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.runtime.pipeline import GridResampler
@@ -47,7 +53,7 @@ def virtual_ball_presses(sensor, grid, n_inside: int = 8, n_edge: int = 8, seed:
     rng = np.random.default_rng([seed, 0x76697274])
     ball = AnalyticSphere(ball_radius_mm)
     to_model = GridResampler(sensor.renderer.grid, OutputGrid())
-    frames, truths, centres, radii, edge = [], [], [], [], []
+    frames, truths, centres, radii, edge, surfaces = [], [], [], [], [], []
     for i in range(n_inside + n_edge):
         depth = rng.uniform(*depth_range_mm)
         a = math.sqrt(2 * ball_radius_mm * depth)
@@ -62,11 +68,15 @@ def virtual_ball_presses(sensor, grid, n_inside: int = 8, n_edge: int = 8, seed:
         r = out.pose_reached
         frames.append(out.frame)
         truths.append(to_model(np.asarray(out.surface_depth_mm, np.float32)))
+        if keep_surfaces:
+            surfaces.append(np.asarray(out.surface_depth_mm, np.float32))
         centres.append((r.x_mm, r.y_mm))
         radii.append(a)
         edge.append(i >= n_inside)
     return VirtualPresses(np.stack(frames), np.stack(truths), np.array(centres),
-                          np.array(radii), np.array(edge))
+                          np.array(radii), np.array(edge),
+                          np.stack(surfaces) if keep_surfaces else None,
+                          sensor.renderer.grid if keep_surfaces else None)
 
 
 def near_contact_errors(depths_mm, presses: VirtualPresses, near_radii: float = 1.5) -> dict:
