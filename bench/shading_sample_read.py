@@ -228,6 +228,8 @@ def main(argv=None) -> None:
                         help="also fit the per-sample tables with these numbers of bins")
     parser.add_argument("--no-cell", action="store_true", help="skip the per-cell reads")
     parser.add_argument("--no-oracle", action="store_true")
+    parser.add_argument("--timing", action="store_true",
+                        help="median frame -> depth time of both reads (one thread)")
     args = parser.parse_args(argv)
     data = wizard_data(args.cache)
     sets = data["sets"]
@@ -242,7 +244,12 @@ def main(argv=None) -> None:
                 print(f"{tag:60s} s={s}: {summary(oracle_errors(data, s, per_sample), sets)}",
                       flush=True)
     camera = data["camera"]
+    if args.timing:
+        import cv2
+
+        cv2.setNumThreads(1)
     for s in args.factors:
+        cell_err, cell_run = None, None
         if not args.no_cell:
             model, t = fit_at(data, s, per_sample=False)
             plain = ImagingPipeline(camera, model, data["reference"], None, "keep", supersample=s)
@@ -253,6 +260,7 @@ def main(argv=None) -> None:
                    for n, new in sets.items()}
             tag = f"per cell (colours averaged), w_x {model.header.poisson_weight_x:.3f}"
             print(f"{tag:60s} s={s}: {summary(err, sets)}   fit {t:.1f} s", flush=True)
+            cell_err, cell_run = err, run
         variants = ([(None, None)] + [(pw, None) for pw in args.prior_weights]
                     + [(None, b) for b in args.bins])
         for pw, bins in variants:
@@ -265,6 +273,37 @@ def main(argv=None) -> None:
                    + ("" if pw is None else f", prior weight {pw:g}")
                    + ("" if bins is None else f", {bins} bins"))
             print(f"{tag:60s} s={s}: {summary(err, sets)}   fit {t:.1f} s", flush=True)
+            if cell_err is not None and pw is None and bins is None:
+                print(f"    per press, s={s}: {press_changes(cell_err, err, sets)}", flush=True)
+            if args.timing and pw is None and bins is None:
+                frame = sets["bench"].frames[0]
+                cell = f"per cell {median_ms(cell_run.frame_to_depth, frame):.2f} ms, " \
+                    if cell_run is not None else ""
+                print(f"    frame -> depth (128 x 128, one thread, median), s={s}: {cell}"
+                      f"per sample {median_ms(run.depth, frame):.2f} ms", flush=True)
+
+
+def press_changes(cell: dict, sample: dict, sets: dict) -> str:
+    """How many presses the per-sample read improves, and the worst near-edge press."""
+    parts = []
+    for name, new in sets.items():
+        d = sample[name]["near"] - cell[name]["near"]
+        edge = np.flatnonzero(new.near_edge)
+        w = edge[np.argmax(cell[name]["near"][edge])]
+        parts.append(f"{name}: {int((d < 0).sum())} of {len(d)} better (median "
+                     f"{np.median(d):+.1f} um), worst near-edge press {cell[name]['near'][w]:.1f}"
+                     f" -> {sample[name]['near'][w]:.1f} um")
+    return "; ".join(parts)
+
+
+def median_ms(fn, frame, n: int = 200) -> float:
+    fn(frame)
+    t = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn(frame)
+        t.append(time.perf_counter() - t0)
+    return float(np.median(t) * 1e3)
 
 
 if __name__ == "__main__":
