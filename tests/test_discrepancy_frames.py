@@ -90,3 +90,17 @@ def test_noise_from_realisations_recovers_planted_white_and_correlated_noise():
     est = noise_from_realisations(np.einsum("njk,njk->nj", smooth, smooth), dof)
     assert est.sigma_mm == pytest.approx(0.003, rel=0.1)
     assert est.energy_factor > 10.0
+
+
+def test_press_frames_equal_press_under_the_same_noise(frames_setup):
+    from tactile_deploy.indenters import ContactPose
+
+    sensor = frames_setup[0]
+    pose = ContactPose(x_mm=2.0, y_mm=-1.0, theta_deg=30.0, depth_mm=0.6)
+    shots, force = sensor.press_frames("sphere_r4", pose, [np.random.default_rng(k)
+                                                           for k in (5, 6)])
+    for k, shot in zip((5, 6), shots):
+        one = sensor.press("sphere_r4", pose, np.random.default_rng(k), truth=False)
+        np.testing.assert_array_equal(shot, one.frame)
+        assert force == pytest.approx(one.force_n)
+    assert not np.array_equal(shots[0], shots[1])

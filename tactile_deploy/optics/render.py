@@ -396,13 +396,15 @@ class OpticsRenderer:
         out[e[0]:e[1], e[2]:e[3]] = big[e[0] - f0[0]:e[1] - f0[0], e[2] - f0[2]:e[3] - f0[2]]
         return out, e
 
-    def blurred_radiance(self, height_mm: np.ndarray) -> np.ndarray:
+    def blurred_radiance(self, height_mm: np.ndarray, with_region: bool = False):
         """Radiance after the optical blur, (H, W, 3) float32 grey levels (a new array).
 
         Only the region that differs from rest is shaded (see ``changed_roi``); the result equals
-        ``blur(radiance(height_mm))`` up to the ``change_tol_mm`` tolerance.
+        ``blur(radiance(height_mm))`` up to the ``change_tol_mm`` tolerance. with_region : also
+        return that region ``(row0, row1, col0, col1)`` (None: all at rest), for :meth:`finish`.
         """
-        return self._blurred_region(height_mm)[0]
+        out, region = self._blurred_region(height_mm)
+        return (out, region) if with_region else out
 
     def _finish(self, img: np.ndarray, region, rng, gain=None) -> np.ndarray:
         m = self.model
@@ -426,12 +428,16 @@ class OpticsRenderer:
         return cv2.add(img, 0.0, dtype=cv2.CV_8U)
 
     def finish(self, radiance: np.ndarray, rng: np.random.Generator | None,
-               gain=None) -> np.ndarray:
+               gain=None, region="all") -> np.ndarray:
         """Noise (when ``rng`` is given), round, saturate: blurred radiance (H, W, 3) -> uint8.
 
-        gain : as in :meth:`render` (per-frame camera effects), or None.
+        gain : as in :meth:`render` (per-frame camera effects), or None. region : where the
+        radiance differs from rest (from ``blurred_radiance(..., with_region=True)``; the noise
+        level elsewhere is the one at rest), or "all".
         """
-        return self._finish(radiance, (0, self.shape[0], 0, self.shape[1]), rng, gain)
+        if isinstance(region, str):
+            region = (0, self.shape[0], 0, self.shape[1])
+        return self._finish(radiance, region, rng, gain)
 
     def render(self, height_mm: np.ndarray, rng: np.random.Generator | None = None,
                gain=None) -> np.ndarray:

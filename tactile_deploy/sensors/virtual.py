@@ -378,8 +378,9 @@ class VirtualSensor:
             return [renderer.reference_frame(r, self._gain(r)) for r in rngs], 0.0
         height = self.surface.height(result.vertices_mm, renderer.rest_height_mm, intrusion,
                                      (reached.x_mm, reached.y_mm), indenter.footprint_radius_mm)
-        radiance = renderer.blurred_radiance(height)
-        return [renderer.finish(radiance, r, self._gain(r)) for r in rngs], float(result.force_n)
+        radiance, region = renderer.blurred_radiance(height, with_region=True)
+        return ([renderer.finish(radiance, r, self._gain(r), region) for r in rngs],
+                float(result.force_n))
 
     def contact_sample(self, indenter, pose: ContactPose,
                        rng: np.random.Generator | None = None):
