@@ -104,3 +104,20 @@ def test_press_frames_equal_press_under_the_same_noise(frames_setup):
         np.testing.assert_array_equal(shot, one.frame)
         assert force == pytest.approx(one.force_n)
     assert not np.array_equal(shots[0], shots[1])
+
+
+def test_contacts_estimated_from_imaged_frames(frames_setup):
+    """Without commanded contacts the poses are found from the imaged maps (the pipeline's own
+    depth error, tens of micrometres, must not move them) and effect-free frames still give
+    none."""
+    sensor = frames_setup[0]
+    contacts = random_contacts(6, 8, radius_mm=6.0, indenters=("sphere_r4", "sphere_r6"))
+    data = hidden_effect_data(sensor, [], contacts, 0.0, 21, frames=True, commanded=False)
+    opts = DiscrepancyOptions(null_replicates=60, bootstrap=200, param_bootstrap=40, folds=3,
+                              candidates=("dome", "tilt"))
+    result = find_discrepancy(sensor, data, opts)
+    assert result.verdict.verdict == "none", result.verdict.message
+    for c, (_, truth) in zip(result.tables.contacts, contacts):
+        assert c.estimated
+        assert np.hypot(c.pose.x_mm - truth.x_mm, c.pose.y_mm - truth.y_mm) < 0.02
+        assert abs(c.pose.depth_mm - truth.depth_mm) < 0.005

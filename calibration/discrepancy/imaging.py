@@ -59,12 +59,13 @@ class FrameImaging:
         return np.stack([np.asarray(self.pipeline.frame_to_depth(f), np.float64)
                          for f in frames])
 
-    def depth_map(self, sensor, indenter, indenter_name: str,
-                  pose: ContactPose) -> tuple[np.ndarray, float]:
+    def depth_map(self, sensor, indenter, indenter_name: str, pose: ContactPose,
+                  noise_pose: ContactPose | None = None) -> tuple[np.ndarray, float]:
         """``(expected imaged map (128, 128) float64 mm, force N)`` of ``sensor`` (the model or
-        a variant) pressed by ``indenter`` at ``pose``."""
-        frames, force = sensor.press_frames(indenter, pose,
-                                            self._rngs(indenter_name, pose, 0, self.n_mean))
+        a variant) pressed by ``indenter`` at ``pose``; the noise draws are those of
+        ``noise_pose`` (default ``pose``): finite differences in the pose share them."""
+        frames, force = sensor.press_frames(indenter, pose, self._rngs(
+            indenter_name, noise_pose or pose, 0, self.n_mean))
         return self._image(frames).mean(axis=0), force
 
     def noise_maps(self, sensor, indenter, indenter_name: str, pose: ContactPose,

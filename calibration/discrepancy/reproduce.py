@@ -109,13 +109,14 @@ class ContactReproducer:
                                                 simulator=self.sensor.simulator)
         return self._variants[key]
 
-    def depth_map(self, indenter: str, pose: ContactPose,
-                  sensor: VirtualSensor | None = None) -> tuple[np.ndarray, float]:
+    def depth_map(self, indenter: str, pose: ContactPose, sensor: VirtualSensor | None = None,
+                  noise_pose: ContactPose | None = None) -> tuple[np.ndarray, float]:
         """``(depth (128, 128) float64 mm, force N)`` of ``indenter`` at ``pose``: the imaged
-        map with an imaging path, else the FEM's surface."""
+        map with an imaging path (its noise draws those of ``noise_pose``, default ``pose``:
+        maps of nearby poses compared with each other share them), else the FEM's surface."""
         if self.imaging is not None:
             return self.imaging.depth_map(sensor or self.sensor, self.indenter(indenter),
-                                          indenter, pose)
+                                          indenter, pose, noise_pose)
         return self.surface_map(indenter, pose, sensor)
 
     def surface_map(self, indenter: str, pose: ContactPose,
@@ -139,17 +140,19 @@ class ContactReproducer:
         positions (+-0.6 mm), least squares on x, y, depth and theta over the pad pixels' depth
         gap, and a simplex polish. Theta stays free for round indenters too: their facets
         switch nodes of the 1 mm mesh in and out of contact. With an imaging path the search
-        compares the FEM's surface with the measured map (hundreds of maps, ten times cheaper
-        than imaged ones); what the pipeline's error moves the pose by is first order and is
-        removed with the contact's nuisance subspace (:meth:`pose_jacobian`, imaged maps).
+        compares the FEM's surface with the measured map (hundreds of maps, several times
+        cheaper than imaged ones), then least squares on imaged maps (their noise draws fixed,
+        so the gap is smooth in the pose) removes what the pipeline's own error moved it by
+        (tens of micrometres in depth).
         """
         round_shape = is_round(indenter)
         mask = self.pad_mask
         measured = np.asarray(measured_mm, np.float64)
 
-        def gap(pose):
+        def gap(pose, noise_pose=None):
             try:
-                sim, _ = self.surface_map(indenter, pose)
+                sim, _ = (self.surface_map(indenter, pose) if noise_pose is None else
+                          self.depth_map(indenter, pose, noise_pose=noise_pose))
             except ValueError:  # off the pad or too deep: a large, smooth penalty
                 return measured[mask] + 1.0
             return (sim - measured)[mask]
@@ -194,7 +197,13 @@ class ContactReproducer:
                                    method="Nelder-Mead",
                                    options={"initial_simplex": simplex, "xatol": 1e-4,
                                             "fatol": 1e-12, "maxfev": 200})
-        return pose_of(polish.x if polish.fun <= 2.0 * sol.cost else sol.x)
+        best_x = polish.x if polish.fun <= 2.0 * sol.cost else sol.x
+        if self.imaging is None:
+            return pose_of(best_x)
+        fixed = pose_of(best_x)
+        imaged = optimize.least_squares(lambda p: gap(pose_of(p), fixed), best_x, x_scale=scale,
+                                        diff_step=1e-2, max_nfev=40)
+        return pose_of(imaged.x)
 
     def pose_jacobian(self, indenter: str, pose: ContactPose, pixels: np.ndarray) -> np.ndarray:
         """Change of the map at flat ``pixels`` per unit change of the contact's x, y, depth
@@ -212,8 +221,8 @@ class ContactReproducer:
                 lo, h2 = pose, h / 2
             else:
                 h2 = h
-            a = self.depth_map(indenter, lo)[0].ravel()[pixels]
-            b = self.depth_map(indenter, hi)[0].ravel()[pixels]
+            a = self.depth_map(indenter, lo, noise_pose=pose)[0].ravel()[pixels]
+            b = self.depth_map(indenter, hi, noise_pose=pose)[0].ravel()[pixels]
             cols.append((b - a) / (2.0 * h2))
         return np.stack(cols, axis=1)
 
