@@ -240,6 +240,32 @@ VIRTUAL_SENSOR = "gelslim2"
 ORACLE_FLOOR_SLOPE = 0.005
 
 
+def run_virtual_wizard(config, folder: Path) -> tuple[dict, object, object, object]:
+    """The calibration wizard on ``virtual:VIRTUAL_SENSOR`` with the simulated rig, its work
+    in ``folder`` (an existing ``work/presses.npz`` there is reused): ``(presses npz as a dict,
+    camera mapping, rectified reference, reference frames)``."""
+    import numpy as np
+    from rich.console import Console
+
+    from calibration.wizard.state import WorkFolder
+    from calibration.wizard.steps import load_camera, load_reference
+    from calibration.wizard.ui import AutoUI
+    from calibration.wizard.wizard import EXIT_OK, run_wizard
+
+    folder.mkdir(parents=True, exist_ok=True)
+    work = WorkFolder(folder / "work")
+    if not work.path("presses.npz").is_file():
+        code = run_wizard("bench", source=f"virtual:{VIRTUAL_SENSOR}", rig="simulated",
+                          gauge=None, config=config, out=folder / "bench", work=work.folder,
+                          ui=AutoUI(Console(quiet=True)))
+        if code != EXIT_OK:
+            raise SystemExit(f"the wizard failed on virtual:{VIRTUAL_SENSOR} (exit code {code})")
+    with np.load(work.path("presses.npz")) as z:
+        d = {k: z[k] for k in z.files}
+    reference, reference_frames = load_reference(work)
+    return d, load_camera(work), reference, reference_frames
+
+
 def virtual_accuracy(small: bool = False) -> dict:
     """Depth errors (um, per press) of the variants on new virtual-sensor presses (module
     docstring), and the wizard's settings."""
@@ -247,7 +273,6 @@ def virtual_accuracy(small: bool = False) -> dict:
     from dataclasses import replace
 
     import numpy as np
-    from rich.console import Console
 
     from calibration.shading.fit import fit_shading
     from calibration.shading.presses import PressSet
@@ -257,16 +282,11 @@ def virtual_accuracy(small: bool = False) -> dict:
         virtual_ball_presses,
     )
     from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.state import WorkFolder
     from calibration.wizard.steps import (
-        load_camera,
-        load_reference,
         press_profiles,
         rectifier_for,
         shading_fit_config,
     )
-    from calibration.wizard.ui import AutoUI
-    from calibration.wizard.wizard import EXIT_OK, run_wizard
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.imaging.poisson import poisson_solver
     from tactile_deploy.runtime.pipeline import GridResampler, ImagingPipeline
@@ -277,16 +297,7 @@ def virtual_accuracy(small: bool = False) -> dict:
         doc["presses"] = {"n_presses": 12}
     config = wizard_config_from_dict(doc, "bench_shading.VIRTUAL_WIZARD")
     with tempfile.TemporaryDirectory() as tmp:
-        work = WorkFolder(Path(tmp) / "work")
-        code = run_wizard("bench", source=f"virtual:{VIRTUAL_SENSOR}", rig="simulated", gauge=None,
-                          config=config, out=Path(tmp) / "bench", work=work.folder,
-                          ui=AutoUI(Console(quiet=True)))
-        if code != EXIT_OK:
-            raise SystemExit(f"the wizard failed on virtual:{VIRTUAL_SENSOR} (exit code {code})")
-        with np.load(work.path("presses.npz")) as z:
-            d = {k: z[k] for k in z.files}
-        camera = load_camera(work)
-        reference, reference_frames = load_reference(work)
+        d, camera, reference, reference_frames = run_virtual_wizard(config, Path(tmp))
     keep = d["keep"]
     pitch = camera.grid.pitch_x_mm
     fit_cfg = shading_fit_config(config.shading)

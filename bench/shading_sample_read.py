@@ -39,34 +39,18 @@ def wizard_data(cache: Path) -> dict:
     if path.is_file():
         with open(path, "rb") as f:
             return pickle.load(f)
-    from rich.console import Console
 
-    from bench.bench_shading import VIRTUAL_SENSOR, VIRTUAL_WIZARD
+    from bench.bench_shading import VIRTUAL_SENSOR, VIRTUAL_WIZARD, run_virtual_wizard
     from calibration.shading.virtual_check import virtual_ball_presses
     from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.state import WorkFolder
     from calibration.wizard.steps import (
-        load_camera,
-        load_reference,
         press_profiles,
         shading_fit_config,
     )
-    from calibration.wizard.ui import AutoUI
-    from calibration.wizard.wizard import EXIT_OK, run_wizard
     from tactile_deploy.sensors import load_sensor
 
     config = wizard_config_from_dict(dict(VIRTUAL_WIZARD), "bench_shading.VIRTUAL_WIZARD")
-    cache.mkdir(parents=True, exist_ok=True)
-    work = WorkFolder(cache / "work")
-    code = EXIT_OK if work.path("presses.npz").is_file() else run_wizard("bench", source=f"virtual:{VIRTUAL_SENSOR}", rig="simulated", gauge=None,
-                      config=config, out=cache / "bench", work=work.folder,
-                      ui=AutoUI(Console(quiet=True)))
-    if code != EXIT_OK:
-        raise SystemExit(f"the wizard failed on virtual:{VIRTUAL_SENSOR} (exit code {code})")
-    with np.load(work.path("presses.npz")) as z:
-        d = {k: z[k] for k in z.files}
-    camera = load_camera(work)
-    reference, reference_frames = load_reference(work)
+    d, camera, reference, reference_frames = run_virtual_wizard(config, cache)
     fit_cfg = shading_fit_config(config.shading)
     profiles = press_profiles(config, d, camera, fit_cfg.far_factor)
     sensor = load_sensor(VIRTUAL_SENSOR)
