@@ -1,8 +1,10 @@
-"""Reading a JSON document from a file, with errors that name the file and the place."""
+"""Reading a JSON document from a file, with errors that name the file and the place; the text of
+a pydantic validation error that names each bad field and the value it had."""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -21,3 +23,21 @@ def read_json(path: str | os.PathLike, error: type[Exception], what: str = "a JS
         raise error(f"{path}: not a text file (expected {what})") from None
     except json.JSONDecodeError as e:
         raise error(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+
+
+def validation_error_text(source, err, what: str, hint: str = "") -> str:
+    """``"{source}: invalid {what}:"`` and one line per problem of the pydantic ``err``: the
+    field's place, the rule it breaks and the value it had (JSON scalars and lists as written,
+    other values by their type), then ``hint`` on a line of its own when given."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(document)"
+        got = e.get("input")
+        if isinstance(got, float) and not math.isfinite(got):
+            got_txt = str(got)
+        elif isinstance(got, (int, float, str, bool, type(None), list)):
+            got_txt = json.dumps(got)
+        else:
+            got_txt = type(got).__name__
+        lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
+    return f"{source}: invalid {what}:\n" + "\n".join(lines) + (f"\n  ({hint})" if hint else "")

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from tactile_deploy.atomic import atomic_path, replace_folder, write_json
-from tactile_deploy.jsonfile import read_json
+from tactile_deploy.jsonfile import read_json, validation_error_text
 
 
 def test_failed_write_leaves_the_previous_file(tmp_path):
@@ -46,3 +46,28 @@ def test_read_json_errors_name_the_file_line_and_column(tmp_path):
     binary.write_bytes(b"\x89PNG\xff\xfe")
     with pytest.raises(_DocError, match="frame.json: not a text file \\(expected a JSON plugin manifest\\)"):
         read_json(binary, _DocError, "a JSON plugin manifest")
+
+
+def test_validation_error_text_names_each_field_and_its_value():
+    from pydantic import BaseModel, Field, ValidationError
+
+    class Inner(BaseModel):
+        k2: float = Field(allow_inf_nan=False)
+
+    class Doc(BaseModel, extra="forbid"):
+        scale_mm: float = Field(gt=0)
+        inner: Inner
+        sizes: list[int]
+
+    with pytest.raises(ValidationError) as err:
+        Doc.model_validate({"scale_mm": -0.5, "inner": {"k2": float("nan")},
+                            "sizes": [1, "x"], "colour": {"r": 1}})
+    text = validation_error_text("cfg.json", err.value, "test document", "see doc.md")
+    lines = text.splitlines()
+    assert lines[0] == "cfg.json: invalid test document:"
+    assert "  field 'scale_mm': Input should be greater than 0 (got -0.5)" in lines
+    assert any(ln.startswith("  field 'inner.k2':") and ln.endswith("(got nan)") for ln in lines)
+    assert any(ln.startswith("  field 'sizes.1':") and ln.endswith('(got "x")') for ln in lines)
+    assert any(ln.startswith("  field 'colour': Extra inputs") and ln.endswith("(got dict)")
+               for ln in lines)
+    assert lines[-1] == "  (see doc.md)"

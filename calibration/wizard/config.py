@@ -16,7 +16,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from tactile_deploy.jsonfile import read_json
+from tactile_deploy.jsonfile import read_json, validation_error_text
 
 FORMAT_VERSION = 1
 SCHEMA_PATH = Path(__file__).with_name("wizard_config.schema.json")
@@ -223,18 +223,6 @@ class WizardConfig(BaseModel):
         return self
 
 
-def _format_validation_error(path: str, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(document)"
-        got = e.get("input")
-        got_txt = (json.dumps(got) if isinstance(got, (int, float, str, bool, type(None), list))
-                   else type(got).__name__)
-        lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
-    return (f"{path}: invalid wizard config:\n" + "\n".join(lines)
-            + f"\n  (the format is described by {SCHEMA_PATH.name} in calibration/wizard/)")
-
-
 def wizard_config_from_dict(doc: dict, source: str = "<dict>") -> WizardConfig:
     """Validate a config document; errors name ``source`` and each bad field."""
     if not isinstance(doc, dict):
@@ -245,7 +233,9 @@ def wizard_config_from_dict(doc: dict, source: str = "<dict>") -> WizardConfig:
     try:
         return WizardConfig.model_validate(doc)
     except ValidationError as e:
-        raise WizardConfigError(_format_validation_error(source, e)) from None
+        raise WizardConfigError(validation_error_text(
+            source, e, "wizard config",
+            f"the format is described by {SCHEMA_PATH.name} in calibration/wizard/")) from None
 
 
 def load_wizard_config(path: str | os.PathLike) -> WizardConfig:

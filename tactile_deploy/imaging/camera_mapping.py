@@ -38,8 +38,6 @@ the raw pixels that fall into one output cell (about 4 x 4 raw px at 640 x 480).
 
 from __future__ import annotations
 
-import json
-import math
 import os
 from pathlib import Path
 from typing import Literal
@@ -49,7 +47,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_text
-from tactile_deploy.jsonfile import read_json
+from tactile_deploy.jsonfile import read_json, validation_error_text
 
 #: Version of the camera mapping file format written by :func:`save_mapping`.
 FORMAT_VERSION = 1
@@ -81,7 +79,7 @@ class OutputGrid(BaseModel):
     ny: int = Field(128, ge=2, description="Number of rows (along -y).")
 
     @model_validator(mode="after")
-    def _check(self) -> "OutputGrid":
+    def _check(self) -> OutputGrid:
         if not self.x_max_mm > self.x_min_mm:
             raise ValueError(f"x_max_mm={self.x_max_mm} must exceed x_min_mm={self.x_min_mm}")
         if not self.y_max_mm > self.y_min_mm:
@@ -208,7 +206,7 @@ class CameraMapping(BaseModel):
         return np.array(self.homography_px_to_mm, dtype=np.float64)
 
     @model_validator(mode="after")
-    def _check_geometry(self) -> "CameraMapping":
+    def _check_geometry(self) -> CameraMapping:
         _check_radial_invertible(self)
         h = self.homography
         if not np.isfinite(np.linalg.cond(h)) or np.linalg.cond(h) > 1e12:
@@ -549,19 +547,6 @@ def save_mapping(mapping: CameraMapping, path: str | os.PathLike) -> None:
     write_text(path, mapping.model_dump_json(indent=2) + "\n")
 
 
-def _format_validation_error(path: Path, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(document)"
-        got = e.get("input")
-        got_txt = json.dumps(got) if isinstance(got, (int, float, str, bool, type(None))) else (
-            type(got).__name__)
-        if isinstance(got, float) and not math.isfinite(got):
-            got_txt = str(got)
-        lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
-    return f"{path}: invalid camera mapping:\n" + "\n".join(lines)
-
-
 def load_mapping(path: str | os.PathLike) -> CameraMapping:
     """Read and validate a camera mapping JSON written by :func:`save_mapping`.
 
@@ -589,7 +574,7 @@ def load_mapping(path: str | os.PathLike) -> CameraMapping:
     try:
         return CameraMapping.model_validate(doc)
     except ValidationError as e:
-        raise CameraMappingError(_format_validation_error(path, e)) from None
+        raise CameraMappingError(validation_error_text(path, e, "camera mapping")) from None
 
 
 def camera_mapping_json_schema() -> dict:

@@ -50,6 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from tactile_deploy.atomic import write_npz
 from tactile_deploy.imaging.poisson import poisson_solver
+from tactile_deploy.jsonfile import validation_error_text
 
 FORMAT_VERSION = 1
 
@@ -343,19 +344,6 @@ def save_shading(model: ShadingModel, path: str | os.PathLike) -> None:
               table=model.table.astype(np.float32))
 
 
-def _format_validation_error(path: Path, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(document)"
-        got = e.get("input")
-        got_txt = json.dumps(got) if isinstance(got, (int, float, str, bool, type(None))) else (
-            type(got).__name__)
-        if isinstance(got, float) and not math.isfinite(got):
-            got_txt = str(got)
-        lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
-    return f"{path}: invalid shading model header:\n" + "\n".join(lines)
-
-
 def load_shading(path: str | os.PathLike) -> ShadingModel:
     """Read and validate a shading model written by :func:`save_shading`.
 
@@ -389,7 +377,7 @@ def load_shading(path: str | os.PathLike) -> ShadingModel:
     try:
         header = ShadingHeader.model_validate(doc)
     except ValidationError as e:
-        raise ShadingModelError(_format_validation_error(path, e)) from None
+        raise ShadingModelError(validation_error_text(path, e, "shading model header")) from None
     slot = arrays["slot_of_bin"]
     table = arrays["table"]
     if slot.dtype.kind not in "iu":

@@ -22,7 +22,6 @@ data, and loading it never runs code from it.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -43,7 +42,7 @@ from pydantic import (
 
 from tactile_deploy.checksums import file_sha256  # noqa: F401 - part of this module's interface
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
-from tactile_deploy.jsonfile import read_json
+from tactile_deploy.jsonfile import read_json, validation_error_text
 from tactile_deploy.runtime.sources.config import SourceConfig
 
 log = logging.getLogger(__name__)
@@ -176,20 +175,6 @@ def manifest_json_schema() -> dict:
     return PluginManifest.model_json_schema()
 
 
-def _format_validation_error(path: Path, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(document)"
-        got = e.get("input")
-        got_txt = json.dumps(got) if isinstance(got, (int, float, str, bool, type(None))) else (
-            type(got).__name__)
-        if isinstance(got, float) and not math.isfinite(got):
-            got_txt = str(got)
-        lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
-    return (f"{path}: invalid plugin manifest:\n" + "\n".join(lines)
-            + "\n  (the format is described by tactile_deploy/runtime/manifest.schema.json)")
-
-
 def load_manifest(path: str | os.PathLike) -> PluginManifest:
     """Read and validate a ``plugin.json`` (the file, or the folder holding it)."""
     path = Path(path)
@@ -207,7 +192,9 @@ def load_manifest(path: str | os.PathLike) -> PluginManifest:
     try:
         return PluginManifest.model_validate(doc)
     except ValidationError as e:
-        raise PluginError(_format_validation_error(path, e)) from None
+        raise PluginError(validation_error_text(
+            path, e, "plugin manifest",
+            "the format is described by tactile_deploy/runtime/manifest.schema.json")) from None
 
 
 # ------------------------------------------------------------------------------------ hooks
