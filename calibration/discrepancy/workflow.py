@@ -348,7 +348,9 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
         phi, _ = fitter.fit(np.einsum("n,nij->ij", w, A), w @ b)
         draws.append(table.params(phi))
     intervals = {}
-    for key in table.candidate.fitted_params:
+    # no resample at all when the refined table could not be simulated anywhere (e.g. a lens
+    # distortion that is not invertible over the image at the fit): no interval then
+    for key in table.candidate.fitted_params if draws else ():
         value = params[key]
         vals = np.array([d[key] for d in draws])
         if key == "azimuth_deg":
