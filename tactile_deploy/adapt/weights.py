@@ -67,12 +67,7 @@ def write_adapted_onnx(card: AdaptationCard, fp32_path: str | Path, weights: dic
                             f"adapted tensor {arr.shape}")
         old.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(arr), m.initializer))
     if metadata:
-        props = {p.key: p.value for p in model.metadata_props}
-        props.update(metadata)
-        del model.metadata_props[:]
-        for k, v in props.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = k, v
+        _merge_metadata(model, metadata)
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp:
         onnx.save(model, str(tmp))
@@ -120,18 +115,23 @@ def quantise_int8(fp32_path: str | Path, out_path: str | Path, calibration_mm: n
     return out_path
 
 
+def _merge_metadata(model, entries: dict[str, str]) -> None:
+    """Add or replace metadata entries of an in-memory ONNX model (order kept, new ones last)."""
+    props = {p.key: p.value for p in model.metadata_props}
+    props.update(entries)
+    del model.metadata_props[:]
+    for k, v in props.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+
+
 def write_metadata_entries(path: str | Path, entries: dict[str, str]) -> None:
     """Add or replace metadata entries of an ONNX file (atomic)."""
     onnx = require_onnx()
     from tactile_deploy.atomic import atomic_path
 
     model = onnx.load(str(path))
-    props = {p.key: p.value for p in model.metadata_props}
-    props.update(entries)
-    del model.metadata_props[:]
-    for k, v in props.items():
-        e = model.metadata_props.add()
-        e.key, e.value = k, v
+    _merge_metadata(model, entries)
     with atomic_path(path) as tmp:
         onnx.save(model, str(tmp))
 
