@@ -90,3 +90,15 @@ def test_renderer_survives_torch_export(pad, tmp_path):
     (ga,) = torch.autograd.grad(a.square().sum(), u)
     (gb,) = torch.autograd.grad(b.square().sum(), u)
     assert torch.allclose(ga, gb)
+
+
+def test_renderer_rejects_bad_mesh_arrays_naming_them():
+    rest = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match=r"faces must have shape \(t, 3\)"):
+        DepthRenderer(np.array([0, 1, 2]), rest)
+    with pytest.raises(ValueError, match=r"rest_vertices_mm must have shape \(n, 3\)"):
+        DepthRenderer(np.array([[0, 1, 2]]), rest[:, :2])
+    with pytest.raises(ValueError, match=r"faces index vertices 0..2, got 0..3"):
+        DepthRenderer(np.array([[0, 1, 3]]), rest)
+    with pytest.raises(ValueError, match="at least one triangle"):
+        DepthRenderer(np.zeros((0, 3), int), rest)

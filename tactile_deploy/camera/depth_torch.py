@@ -101,6 +101,59 @@ def deformed_triangles(u: torch.Tensor, faces, edge_a, edge_b, edge_rest, rest_r
 
 
 @dataclass(frozen=True)
+class RestTables:
+    """Tables of a triangle mesh at rest on a raster grid that a rasteriser keeps (numpy).
+
+    faces : (t, 3) int64. edge_a, edge_b : (t, 3) int64, edge i of a face (opposite vertex i)
+    runs from its lower-index vertex a to b. edge_sign : (t, 3) float64, +1 where the face's
+    own direction (vertex j -> k) is a -> b, else -1. ref_pixel : (n, 2) float64, the whole
+    pixel (column, row) nearest each vertex's rest xy. offset : (n, 2) mm, that pixel centre
+    minus the vertex's rest xy. edge_rest : (t, 3, 2) mm, rest xy of b - a. rest_z : (t, 3) mm,
+    rest z of the face's vertices. rest_rel : (t, 2, 3) mm, rest vertices 1 and 2 minus vertex
+    0. rest_pix : (n, 2) float64, rest xy in pixel units (for bounding boxes).
+    """
+
+    faces: np.ndarray
+    edge_a: np.ndarray
+    edge_b: np.ndarray
+    edge_sign: np.ndarray
+    ref_pixel: np.ndarray
+    offset: np.ndarray
+    edge_rest: np.ndarray
+    rest_z: np.ndarray
+    rest_rel: np.ndarray
+    rest_pix: np.ndarray
+
+    @classmethod
+    def of(cls, faces, rest_vertices_mm, grid: RasterGrid) -> RestTables:
+        """The tables of ``faces`` (t, 3) int over ``rest_vertices_mm`` (n, 3) mm (the frame of
+        ``grid``); ValueError naming the array when a shape or an index is wrong."""
+        faces = np.asarray(faces, dtype=np.int64)
+        rest = np.asarray(rest_vertices_mm, dtype=np.float64)
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"faces must have shape (t, 3), got {faces.shape}")
+        if rest.ndim != 2 or rest.shape[1] != 3:
+            raise ValueError(f"rest_vertices_mm must have shape (n, 3), got {rest.shape}")
+        if faces.size and (faces.min() < 0 or faces.max() >= len(rest)):
+            raise ValueError(f"faces index vertices 0..{len(rest) - 1}, got "
+                             f"{faces.min()}..{faces.max()}")
+        p = grid.pitch_mm
+        j, k = np.array([1, 2, 0]), np.array([2, 0, 1])
+        fj, fk = faces[:, j], faces[:, k]
+        forward = fj < fk
+        edge_a = np.where(forward, fj, fk)
+        edge_b = np.where(forward, fk, fj)
+        pix = np.stack([(rest[:, 0] - grid.x0_mm) / p, (rest[:, 1] - grid.y0_mm) / p], axis=1)
+        ref = np.rint(pix)
+        offset = np.stack([grid.x0_mm + ref[:, 0] * p - rest[:, 0],
+                           grid.y0_mm + ref[:, 1] * p - rest[:, 1]], axis=1)
+        tri = rest[faces]
+        return cls(faces, edge_a, edge_b, np.where(forward, 1.0, -1.0), ref, offset,
+                   rest[edge_b, :2] - rest[edge_a, :2], tri[:, :, 2],
+                   tri[:, 1:, :] - tri[:, :1, :], pix)
+
+
+@dataclass(frozen=True)
 class TorchRaster:
     """Result of :meth:`TriangleRasterizer.rasterize` for B samples on a grid (ny, nx).
 
@@ -142,54 +195,30 @@ class TriangleRasterizer:
         dtype: torch.dtype = torch.float64,
         edge_tolerance_mm: float = EDGE_TOLERANCE_MM,
     ):
-        faces = np.asarray(faces, dtype=np.int64)
-        rest = np.asarray(rest_vertices_mm, dtype=np.float64)
-        if faces.ndim != 2 or faces.shape[1] != 3:
-            raise ValueError(f"faces must have shape (t, 3), got {faces.shape}")
-        if rest.ndim != 2 or rest.shape[1] != 3:
-            raise ValueError(f"rest_vertices_mm must have shape (n, 3), got {rest.shape}")
-        if faces.size and (faces.min() < 0 or faces.max() >= len(rest)):
-            raise ValueError(f"faces index vertices 0..{len(rest) - 1}, got {faces.min()}..{faces.max()}")
         if not edge_tolerance_mm >= 0:
             raise ValueError(f"edge_tolerance_mm must be >= 0, got {edge_tolerance_mm!r}")
+        tables = RestTables.of(faces, rest_vertices_mm, grid)
         self.grid = grid
         self.tol = float(edge_tolerance_mm)
         self.device = torch.device(device)
         self.dtype = dtype
-        self.n_vertices = len(rest)
+        self.n_vertices = len(tables.rest_pix)
         self.n_pixels = grid.nx * grid.ny
-        p = grid.pitch_mm
-
-        # Canonical edges: edge i (opposite vertex i) runs from its lower-index vertex a to b.
-        j, k = np.array([1, 2, 0]), np.array([2, 0, 1])
-        fj, fk = faces[:, j], faces[:, k]  # (t, 3)
-        forward = fj < fk
-        edge_a = np.where(forward, fj, fk)
-        edge_b = np.where(forward, fk, fj)
-        edge_sign = np.where(forward, 1.0, -1.0)  # orientation of (j -> k) relative to (a -> b)
-        # Per vertex: a pixel near its rest position and that pixel centre's offset from it.
-        ref_col = np.rint((rest[:, 0] - grid.x0_mm) / p)
-        ref_row = np.rint((rest[:, 1] - grid.y0_mm) / p)
-        offset = np.stack([grid.x0_mm + ref_col * p - rest[:, 0],
-                           grid.y0_mm + ref_row * p - rest[:, 1]], axis=1)
-        tri = rest[faces]
 
         def dev(x, dt=dtype):
             return torch.as_tensor(x, dtype=dt, device=self.device)
 
-        self.faces = dev(faces, torch.int64)
-        self.edge_a = dev(edge_a, torch.int64)
-        self.edge_b = dev(edge_b, torch.int64)
-        self.edge_sign = dev(edge_sign)
-        self.ref_pixel_f = dev(np.stack([ref_col, ref_row], axis=1))  # (n, 2), whole pixels
-        self.offset = dev(offset)  # (n, 2) mm
-        self.edge_rest = dev(rest[edge_b, :2] - rest[edge_a, :2])  # (t, 3, 2)
-        self.rest_z = dev(tri[:, :, 2])  # (t, 3)
-        self.rest_rel = dev(tri[:, 1:, :] - tri[:, :1, :])  # (t, 2, 3): v1 - v0, v2 - v0
+        self.faces = dev(tables.faces, torch.int64)
+        self.edge_a = dev(tables.edge_a, torch.int64)
+        self.edge_b = dev(tables.edge_b, torch.int64)
+        self.edge_sign = dev(tables.edge_sign)
+        self.ref_pixel_f = dev(tables.ref_pixel)  # (n, 2), whole pixels
+        self.offset = dev(tables.offset)  # (n, 2) mm
+        self.edge_rest = dev(tables.edge_rest)  # (t, 3, 2)
+        self.rest_z = dev(tables.rest_z)  # (t, 3)
+        self.rest_rel = dev(tables.rest_rel)  # (t, 2, 3): v1 - v0, v2 - v0
         # Rest xy in pixel units (float64) for the bounding boxes.
-        self.rest_pix = torch.as_tensor(
-            np.stack([(rest[:, 0] - grid.x0_mm) / p, (rest[:, 1] - grid.y0_mm) / p], axis=1),
-            dtype=torch.float64, device=self.device)
+        self.rest_pix = dev(tables.rest_pix, torch.float64)
 
     # ------------------------------------------------------------------------------------------
     def rasterize(

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from tactile_deploy.camera.depth_torch import deformed_triangles
+from tactile_deploy.camera.depth_torch import RestTables, deformed_triangles
 from tactile_deploy.raster import EDGE_TOLERANCE_MM
 
 #: Pixels each triangle visits (see module docstring).
@@ -63,53 +63,38 @@ class DepthRenderer(nn.Module):
         from tactile_deploy.camera.depth import DepthCamera
         from tactile_deploy.raster import rasterize_triangles
 
-        faces = np.asarray(faces, dtype=np.int64)
-        rest = np.asarray(rest_vertices_mm, dtype=np.float64)
-        if faces.ndim != 2 or faces.shape[1] != 3:
-            raise ValueError(f"faces must have shape (t, 3), got {faces.shape}")
-        if rest.ndim != 2 or rest.shape[1] != 3:
-            raise ValueError(f"rest_vertices_mm must have shape (n, 3), got {rest.shape}")
-        if faces.min() < 0 or faces.max() >= len(rest):
-            raise ValueError(f"faces index vertices 0..{len(rest) - 1}, got {faces.min()}..{faces.max()}")
         if int(pixels_per_triangle) < 1:
             raise ValueError(f"pixels_per_triangle must be >= 1, got {pixels_per_triangle}")
         camera = camera or DepthCamera()
         grid = camera.grid
+        tables = RestTables.of(faces, rest_vertices_mm, grid)
+        if tables.faces.size == 0:
+            raise ValueError("faces must hold at least one triangle, got none")
+        rest = np.asarray(rest_vertices_mm, dtype=np.float64)
         self.n_vertices = len(rest)
         self.nx, self.ny = grid.nx, grid.ny
         self.pitch_mm = float(grid.pitch_mm)
         self.tol = float(edge_tolerance_mm)
         self.pixels_per_triangle = int(pixels_per_triangle)
         p = self.pitch_mm
-
-        j, k = np.array([1, 2, 0]), np.array([2, 0, 1])
-        fj, fk = faces[:, j], faces[:, k]
-        forward = fj < fk
-        edge_a = np.where(forward, fj, fk)
-        edge_b = np.where(forward, fk, fj)
-        ref_col = np.rint((rest[:, 0] - grid.x0_mm) / p)
-        ref_row = np.rint((rest[:, 1] - grid.y0_mm) / p)
-        offset = np.stack([grid.x0_mm + ref_col * p - rest[:, 0],
-                           grid.y0_mm + ref_row * p - rest[:, 1]], axis=1)
-        tri = rest[faces]
+        tri = rest[tables.faces]
         z_rest = rasterize_triangles(tri, grid, reduce="min").z_mm  # (ny, nx), grid rows
         mask = np.isfinite(z_rest)
 
         def buf(name, x, dt=dtype):
             self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(x), dtype=dt))
 
-        buf("faces", faces, torch.int64)
-        buf("edge_a", edge_a, torch.int64)
-        buf("edge_b", edge_b, torch.int64)
-        buf("edge_sign", np.where(forward, 1.0, -1.0))
+        buf("faces", tables.faces, torch.int64)
+        buf("edge_a", tables.edge_a, torch.int64)
+        buf("edge_b", tables.edge_b, torch.int64)
+        buf("edge_sign", tables.edge_sign)
         # per edge start a: a pixel near a's rest position (whole pixels) and its offset from a (mm)
-        buf("edge_ref", np.stack([ref_col, ref_row], axis=1)[edge_a])  # (t, 3, 2)
-        buf("edge_offset", offset[edge_a])                            # (t, 3, 2)
-        buf("edge_rest", rest[edge_b, :2] - rest[edge_a, :2])         # (t, 3, 2) mm
-        buf("rest_z", tri[:, :, 2])                                   # (t, 3) mm
-        buf("rest_rel", tri[:, 1:, :] - tri[:, :1, :])                # (t, 2, 3) mm
-        buf("rest_pix", np.stack([(rest[:, 0] - grid.x0_mm) / p, (rest[:, 1] - grid.y0_mm) / p], 1),
-            torch.float64)                                            # (n, 2) pixel units
+        buf("edge_ref", tables.ref_pixel[tables.edge_a])              # (t, 3, 2)
+        buf("edge_offset", tables.offset[tables.edge_a])              # (t, 3, 2)
+        buf("edge_rest", tables.edge_rest)                            # (t, 3, 2) mm
+        buf("rest_z", tables.rest_z)                                  # (t, 3) mm
+        buf("rest_rel", tables.rest_rel)                              # (t, 2, 3) mm
+        buf("rest_pix", tables.rest_pix, torch.float64)               # (n, 2) pixel units
         buf("mask", mask, torch.bool)                                 # (ny, nx) grid rows
         buf("z_rest", np.where(mask, z_rest, 0.0))                    # (ny, nx) mm
         buf("pixel_step", np.arange(self.pixels_per_triangle), torch.int64)
@@ -118,7 +103,7 @@ class DepthRenderer(nn.Module):
         buf("pixel_y", grid.y0_mm + (np.arange(self.nx * self.ny) // self.nx) * p)
 
     @classmethod
-    def for_pad(cls, pad=None, **kwargs) -> "DepthRenderer":
+    def for_pad(cls, pad=None, **kwargs) -> DepthRenderer:
         """Renderer of the sensing surface of ``pad`` (default: the shipped GelSlim pad)."""
         if pad is None:
             from tactile_deploy.pad.asset import load_pad
