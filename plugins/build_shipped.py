@@ -4,6 +4,8 @@ virtual sensors of the same names, plus a demo clip.
     python plugins/build_shipped.py [--only gelslim2] [--model exported/gelslim_mesh.onnx]
                                     [--overwrite] [--work DIR]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
+    python plugins/build_shipped.py --readout          # plugins that read frames with the
+                                                       # learned read-out (not the shipped ones)
 
 Each plugin is made by ``tactile-deploy calibrate`` (:func:`calibration.wizard.wizard.run_wizard`,
 docs/calibration.md), run non-interactively with the committed config ``plugins/wizard/NAME.json``
@@ -41,6 +43,7 @@ renamed into place after it validates; an existing plugin is only replaced with 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import json
 import math
@@ -59,6 +62,7 @@ sys.path.insert(0, str(ROOT))
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_MODEL = ROOT / "exported" / "gelslim_mesh.onnx"
+DEFAULT_READOUT = ROOT / "exported" / "gelslim_readout.onnx"
 #: The wizard config of each shipped plugin.
 WIZARD_CONFIGS = HERE / "wizard"
 BALL_RADIUS_MM = 3.0
@@ -190,16 +194,22 @@ def demo_frames(sensor, move: DemoMove, seed: int, n: int = N_DEMO):
 
 
 # ------------------------------------------------------------------------------------ build
-def run_wizard_on_virtual(name: str, out: Path, work: Path, model: Path) -> None:
+def run_wizard_on_virtual(name: str, out: Path, work: Path, model: Path,
+                          readout: Path | None = None) -> None:
     """``tactile-deploy calibrate --sensor NAME --source virtual:NAME --rig simulated --yes
-    --config plugins/wizard/NAME.json --out OUT --work WORK --model MODEL --overwrite``."""
+    --config plugins/wizard/NAME.json --out OUT --work WORK --model MODEL --overwrite``, the
+    config's ``readout`` set to ``readout`` when given."""
     from calibration.wizard.config import load_wizard_config
     from calibration.wizard.ui import AutoUI
     from calibration.wizard.wizard import EXIT_OK, run_wizard
 
     config = load_wizard_config(WIZARD_CONFIGS / f"{name}.json")
-    code = run_wizard(name, source=f"virtual:{name}", rig="simulated", gauge=None, config=config,
-                      out=out, work=work, ui=AutoUI(), overwrite=True, model=model)
+    if readout is not None:   # recorded relative to the checkout (the wizard runs from there)
+        config = config.model_copy(update={"readout": Path(os.path.relpath(readout, ROOT)).as_posix()})
+    with contextlib.chdir(ROOT):
+        code = run_wizard(name, source=f"virtual:{name}", rig="simulated", gauge=None,
+                          config=config, out=out.resolve(), work=work.resolve(), ui=AutoUI(),
+                          overwrite=True, model=model)
     if code != EXIT_OK:
         raise SystemExit(f"the calibration wizard failed on virtual:{name} (exit code {code}); "
                          f"its work folder is {work}")
@@ -257,7 +267,8 @@ def compact_report_pictures(folder: Path) -> None:
             small.save(tmp, format="PNG", optimize=True)
 
 
-def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | None = None) -> dict:
+def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | None = None,
+          readout: Path | None = None) -> dict:
     """Make the shipped plugin ``name`` in ``folder`` (see the module docstring)."""
     from tactile_deploy.atomic import replace_folder
     from tactile_deploy.runtime.plugins import (
@@ -279,7 +290,7 @@ def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | No
     if staging.exists():
         shutil.rmtree(staging)
     with tempfile.TemporaryDirectory(prefix=f"{name}-calibration-") as tmp:
-        run_wizard_on_virtual(name, staging, work or Path(tmp) / "work", model)
+        run_wizard_on_virtual(name, staging, work or Path(tmp) / "work", model, readout)
     try:
         plugin = SensorPlugin.load(staging)
         sensor = load_sensor(name)
@@ -358,6 +369,10 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace existing plugins")
     ap.add_argument("--work", type=Path, help="keep the wizard's work folders here "
                     "(WORK/NAME.calibration; default: a temporary folder)")
+    ap.add_argument("--readout", type=Path, nargs="?", const=DEFAULT_READOUT, default=None,
+                    help="give the plugins the design's learned read-out (default file: "
+                    "exported/gelslim_readout.onnx; without the option the shading model reads "
+                    "frames, as in the shipped plugins)")
     ap.add_argument("--relink-model", action="store_true",
                     help="only point existing plugins at --model (after a re-export)")
     args = ap.parse_args(argv)
@@ -366,7 +381,11 @@ def main(argv=None) -> int:
             print(json.dumps(relink_model(args.out / name, args.model.resolve()), indent=2))
             continue
         work = args.work / f"{name}.calibration" if args.work else None
-        info = build(name, args.out / name, args.model.resolve(), args.overwrite, work)
+        readout = None if args.readout is None else args.readout.resolve()
+        if readout is not None and not readout.is_file():
+            raise SystemExit(f"the learned read-out {readout} does not exist: train it "
+                             "(python -m training.shading_net)")
+        info = build(name, args.out / name, args.model.resolve(), args.overwrite, work, readout)
         print(json.dumps(info, indent=2))
     return 0
 

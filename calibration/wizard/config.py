@@ -205,6 +205,12 @@ class WizardConfig(BaseModel):
                               "exported/gelslim_mesh.onnx of a source checkout).")
     copy_model: bool = Field(True, description="Copy the model into the plugin folder (a "
                              "self-contained plugin) instead of referencing it by path.")
+    readout: str | None = Field(None, description="A learned read-out of the sensor's design "
+                                "(.onnx from `python -m training.shading_net`) for the plugin to "
+                                "turn frames into depth with instead of the fitted shading model "
+                                "(None: the shading model); a relative path is relative to the "
+                                "current folder. The noise reference is made with it, and its "
+                                "depth gain on this unit is calibrated from the rig's presses.")
     rig_config: str | None = Field(None, description="Rig config JSON (docs/rig.md): stage frame, "
                                    "limits, force limit. Ports from --rig/--gauge override it.")
     rig: RigSettings = Field(default_factory=RigSettings)

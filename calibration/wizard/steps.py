@@ -687,10 +687,23 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     shading = load_shading(ctx.work.path("shading.npz"))
     shutil.copyfile(ctx.work.path("shading.npz"), folder / "shading.npz")
     _png(folder / "reference.png", ref)
-    plain = ImagingPipeline(camera, shading, ref, None, "keep")
+    readout = None
+    if cfg.readout is not None:
+        from tactile_deploy.imaging.learned_readout import LearnedReadout, ReadoutError
+
+        try:
+            readout = LearnedReadout(cfg.readout)
+        except ReadoutError as e:
+            raise StepError(f"config field 'readout': {e}") from None
+    plain = ImagingPipeline(camera, shading, ref, None, "keep", readout=readout)
     noise = np.mean([plain.frame_to_depth(f) for f in ref_frames], axis=0).astype(np.float32)
-    np.save(folder / "noise_reference.npy", noise)
     d = _load(ctx.work, "presses.npz")
+    material = json.loads(ctx.work.path("fem.json").read_text())
+    gain, gain_note = 1.0, None
+    if readout is not None:
+        gain, gain_note = _readout_gain(camera, shading, ref, noise, readout, d, material)
+        noise = noise * np.float32(gain)
+    np.save(folder / "noise_reference.npy", noise)
     demo = np.concatenate([ref_frames[:4], d["raw"][d["keep"]]])
     write_video(folder / "demo.avi", demo, fps=10.0, fourcc="MJPG")
     topo = MeshTopology.from_pad(cfg.family)
@@ -698,7 +711,6 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     if cfg.copy_model:
         shutil.copyfile(model, folder / model.name)
         model = folder / model.name
-    material = json.loads(ctx.work.path("fem.json").read_text())
     steps = ctx.state.steps
     prov = {"made_by": "tactile-deploy calibrate (the calibration wizard)",
             "date": ctx.state.started[:10], "source": ctx.state.source,
@@ -721,12 +733,38 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
         "noise_handling": "subtract",
         "provenance": prov,
     }
+    if readout is not None:
+        fields["readout_depth_gain"] = gain
+        prov["readout"] = gain_note
     files = {"model": model, "shading": folder / "shading.npz",
              "reference_frame": folder / "reference.png",
              "noise_reference": folder / "noise_reference.npy", "demo_clip": folder / "demo.avi",
              "topology": folder / "topology.npz"}
+    if readout is not None:
+        files["readout"] = readout.path.resolve()
     manifest = write_plugin(folder, fields, files)
     return manifest, [f"model: {'copied into the plugin' if cfg.copy_model else model}"]
+
+
+def _readout_gain(camera, shading, ref, noise, readout, d, material) -> tuple[float, str]:
+    """The unit's depth gain of the learned read-out from the rig's presses
+    (:mod:`calibration.shading.readout_gain`), and a line for the provenance."""
+    from calibration.shading.readout_gain import readout_depth_gain
+    from tactile_deploy.runtime.pipeline import ImagingPipeline
+
+    tips = d["tip_mm"]
+    use = d["keep"] & np.all(np.isfinite(tips), axis=1)
+    what = f"{readout.path.name} (design {readout.metadata.get('design', '?')})"
+    if not use.any():
+        return 1.0, (f"{what}; depth gain not calibrated (1): no rig presses of known depth")
+    offset = material.get("depth_offset_mm")
+    pipeline = ImagingPipeline(camera, shading, ref, noise, "subtract", readout=readout)
+    gain, ratios = readout_depth_gain(pipeline, d["raw"][use], tips[use, 2], offset or 0.0)
+    source = (f"the rig's zero offset {1e3 * offset:+.1f} um from the FEM step"
+              if offset is not None else "no zero offset known (FEM fit off): taken as 0")
+    return gain, (f"{what}; depth gain {gain:.4f} = median over {len(ratios)} rig presses of the "
+                  f"intrusion over the read-out's deepest cell (p10-p90 {np.percentile(ratios, 10):.3f}"
+                  f"-{np.percentile(ratios, 90):.3f}), {source}")
 
 
 def _default_source(ctx: Context) -> dict:

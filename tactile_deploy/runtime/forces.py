@@ -94,7 +94,7 @@ class SurfaceStiffness:
         return cache_dir() / f"surface_stiffness_{key}.npy"
 
     @classmethod
-    def for_pad(cls, mesh, nu: float, use_cache: bool = True, progress=None) -> "SurfaceStiffness":
+    def for_pad(cls, mesh, nu: float, use_cache: bool = True, progress=None) -> SurfaceStiffness:
         """The stiffness of ``mesh`` for Poisson ratio ``nu`` (cached on disk after the first
         computation, which solves the sparse FEM system once per sensing node; ``progress(n)``
         is called as columns are done)."""

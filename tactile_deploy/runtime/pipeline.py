@@ -320,12 +320,17 @@ class ImagingPipeline:
     supersample : samples per imaging-grid cell side (:class:`Rectifier`; default from the
         camera's scale, at most 2). The shading model must be fitted on frames rectified the
         same way (:meth:`rectify`).
+    readout : a :class:`~tactile_deploy.imaging.learned_readout.LearnedReadout`, or None. When
+        given, the rectified frame's features go through it to depth (stages ``reference``:
+        features, ``shading``: the network) instead of the shading table and the integration.
+    readout_gain : the unit's depth gain of the read-out (the plugin's ``readout_depth_gain``),
+        multiplying its depth.
     """
 
     def __init__(self, camera: CameraMapping, shading: ShadingModel, reference_raw: np.ndarray,
                  noise_mm: np.ndarray | None = None, noise_handling: str = "keep",
                  depth_grid: OutputGrid | None = None, hooks=None,
-                 supersample: int | None = None):
+                 supersample: int | None = None, readout=None, readout_gain: float = 1.0):
         self.camera = camera
         self.frame_shape = (camera.image_height_px, camera.image_width_px)
         self.rectifier = Rectifier(camera, supersample)
@@ -333,6 +338,14 @@ class ImagingPipeline:
         if hooks is not None:      # the reference goes through the same preprocessing as frames
             reference_raw = check_frame(hooks.preprocess_frame(reference_raw), self.frame_shape)
         self.tables = ShadingTables.build(shading, self.rectify(reference_raw))
+        self.readout = readout
+        self.readout_gain = np.float32(readout_gain)
+        if readout is not None:
+            from tactile_deploy.imaging.learned_readout import FeatureMaker
+
+            self.features = FeatureMaker(self.tables.reference_u8, camera.grid,
+                                         readout.saturation_level,
+                                         shading.header.offset_inlier_grey)
         h = shading.header
         self.solver = poisson_solver(h.image_shape, "dirichlet",
                                      (h.poisson_weight_x, h.poisson_weight_y))
@@ -355,7 +368,7 @@ class ImagingPipeline:
         m = plugin.manifest
         return cls(m.camera, plugin.shading_model, plugin.reference_frame,
                    plugin.noise_reference, m.noise_reference.handling, m.depth_grid,
-                   plugin.hooks)
+                   plugin.hooks, readout=plugin.readout, readout_gain=m.readout_depth_gain)
 
     def rectify(self, frame) -> np.ndarray:
         """Raw frame -> (ny, nx, 3) uint8 on the imaging grid (rectify and resample stages)."""
@@ -372,6 +385,13 @@ class ImagingPipeline:
         laps.lap("rectify")
         image = resample_to_grid(samples, self.rectifier)
         laps.lap("resample")
+        if self.readout is not None:
+            features = self.features(image)
+            laps.lap("reference")
+            depth = self.readout.depth_mm(features)
+            depth *= self.readout_gain
+            laps.lap("shading")
+            return depth
         diff = subtract_reference(image, self.tables)
         laps.lap("reference")
         g_col, g_row = shading_gradients(diff, image, self.tables)

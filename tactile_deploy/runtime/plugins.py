@@ -40,7 +40,7 @@ from pydantic import (
     model_validator,
 )
 
-from tactile_deploy.checksums import file_sha256  # noqa: F401 - part of this module's interface
+from tactile_deploy.checksums import file_sha256
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.jsonfile import read_json, validation_error_text
 from tactile_deploy.runtime.sources.config import SourceConfig
@@ -134,6 +134,13 @@ class PluginManifest(BaseModel):
                                    "128 x 128, row 0 at the largest y.")
     shading: FileRef = Field(description="Shading model (.npz with JSON header) fitted on frames "
                              "rectified onto the camera's imaging grid.")
+    readout: FileRef | None = Field(
+        None, description="Optional learned read-out of the sensor's design (.onnx: rectified "
+        "frame features -> depth, tactile_deploy/imaging/learned_readout.py); when given, it "
+        "turns frames into depth instead of the shading model and the integration.")
+    readout_depth_gain: float = Field(
+        1.0, gt=0, description="This unit's depth gain of the learned read-out (its depth is "
+        "multiplied by it), calibrated from ball presses of known intrusion.")
     reference_frame: FileRef = Field(description="No-contact frame, raw camera pixels, RGB "
                                      "image file (PNG).")
     noise_reference: NoiseReferenceSpec = Field(description="No-contact depth map (.npy, "
@@ -167,6 +174,8 @@ class PluginManifest(BaseModel):
                "topology": self.topology}
         if self.adapted_model is not None:
             out["adapted_model"] = self.adapted_model
+        if self.readout is not None:
+            out["readout"] = self.readout
         return out
 
 
@@ -434,6 +443,19 @@ class SensorPlugin:
         return model
 
     @cached_property
+    def readout(self):
+        """The learned read-out (:class:`~tactile_deploy.imaging.learned_readout.LearnedReadout`)
+        named by the manifest, or None."""
+        if self.manifest.readout is None:
+            return None
+        from tactile_deploy.imaging.learned_readout import LearnedReadout, ReadoutError
+
+        try:
+            return LearnedReadout(self.verified_path("readout"))
+        except ReadoutError as e:
+            raise PluginError(f"plugin {self.name!r}: {e}") from None
+
+    @cached_property
     def reference_frame(self) -> np.ndarray:
         """No-contact frame, (H, W, 3) uint8 RGB, raw camera pixels."""
         import cv2
@@ -544,6 +566,8 @@ def validate_plugin(name_or_path: str | os.PathLike, check_model: bool = True) -
         attempt(f"{name} checksum", lambda n=name: plugin.verified_path(n))
     attempt("pad mesh hash", lambda: _check_family(plugin))
     attempt("shading model", lambda: plugin.shading_model)
+    if manifest.readout is not None:
+        attempt("learned read-out", lambda: plugin.readout)
     attempt("reference frame", lambda: plugin.reference_frame)
     attempt("noise reference", lambda: plugin.noise_reference)
     attempt("demo clip", lambda: _check_demo(plugin))

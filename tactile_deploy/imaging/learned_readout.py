@@ -1,0 +1,149 @@
+"""Learned read-out: rectified camera frame -> depth map by a small convolutional network.
+
+The shading table (:mod:`tactile_deploy.imaging.shading`) reads each pixel's colour alone; where
+the slope of a contact edge is steep, one LED channel clips and another goes dark, and the
+colour no longer tells the slope. A network that sees the pixel's neighbourhood can hold such a
+pixel by the shape around it. It is trained once per sensor *design* on a family of virtual units
+(LED placement and brightness varied within assembly tolerances, ``training/shading_net``), so a
+new unit needs only its own no-contact reference frame and camera mapping.
+
+Input features (:func:`colour_features`, one (11, H, W) float32 stack per frame on the imaging
+grid; H, W any size, the network is fully convolutional):
+
+==========  ==============================================================================
+channels    meaning
+==========  ==============================================================================
+0-2         ``(frame - reference - offset) * reference_gain / COLOUR_SCALE_GREY`` (RGB), the
+            offset being the frame's illumination drift (:func:`~.shading.frame_offset`)
+3-5         1 where the frame's channel is saturated (>= ``saturation_level``), else 0
+6-8         ``reference / 255`` (the unit's illumination)
+9-10        sensor-frame x and y of the cell centre / ``POSITION_SCALE_MM`` (the LEDs' geometry)
+==========  ==============================================================================
+
+Output: depth (H, W) mm, positive into the gel, on the same imaging grid (the ONNX output
+``depth_mm``, shape (B, H, W)); the network also returns the depth gradients it was trained
+on (``gradients``, (B, 2, H, W), along image columns (+x) and rows (-y), mm per mm), which the
+runtime does not use.
+
+The ONNX file carries its contract in its metadata (``readout_format``, ``feature_version``,
+``colour_scale_grey``, ``position_scale_mm``, ``saturation_level``, ``design``), checked on load.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from tactile_deploy.imaging.camera_mapping import OutputGrid, grid_centres_mm
+from tactile_deploy.imaging.shading import frame_offset, reference_gain
+
+#: Version of the feature definition above; a network trained on another version is refused.
+FEATURE_VERSION = 1
+#: Grey levels that map to 1.0 in the colour-difference channels.
+COLOUR_SCALE_GREY = 64.0
+#: Millimetres that map to 1.0 in the position channels.
+POSITION_SCALE_MM = 17.5
+#: Feature channels (see the module docstring).
+N_FEATURES = 11
+#: ``readout_format`` value of a network file in this format.
+READOUT_FORMAT = "tactile-deploy learned read-out 1"
+
+
+class ReadoutError(ValueError):
+    """A learned read-out file, or a frame given to it, is not what it must be."""
+
+
+class FeatureMaker:
+    """Per-frame features of one unit: the parts that depend only on the reference and the
+    imaging grid are computed once.
+
+    reference_u8 : (H, W, 3) uint8 rectified no-contact frame on ``grid``.
+    grid : the imaging grid (sensor frame, mm).
+    """
+
+    def __init__(self, reference_u8: np.ndarray, grid: OutputGrid, saturation_level: int = 254,
+                 inlier_grey: float = 12.0):
+        ref = np.asarray(reference_u8)
+        if ref.shape != (grid.ny, grid.nx, 3) or ref.dtype != np.uint8:
+            raise ReadoutError(f"reference must be ({grid.ny}, {grid.nx}, 3) uint8 (the imaging "
+                               f"grid), got {ref.shape} {ref.dtype}")
+        self.reference_u8 = np.ascontiguousarray(ref)
+        self.reference = ref.astype(np.float32)
+        self.scale = (reference_gain(ref) / COLOUR_SCALE_GREY).astype(np.float32)
+        self.saturation_level = int(saturation_level)
+        self.inlier_grey = float(inlier_grey)
+        x, y = grid_centres_mm(grid)
+        self.fixed = np.concatenate(
+            [np.moveaxis(self.reference / 255.0, -1, 0),
+             (np.stack([x, y]) / POSITION_SCALE_MM)], axis=0).astype(np.float32)   # (5, H, W)
+
+    def __call__(self, image_u8: np.ndarray) -> np.ndarray:
+        """(11, H, W) float32 features of a rectified frame (H, W, 3) uint8."""
+        image = np.asarray(image_u8)
+        if image.shape != self.reference_u8.shape or image.dtype != np.uint8:
+            raise ReadoutError(f"frame must be {self.reference_u8.shape} uint8 (the imaging grid), "
+                               f"got {image.shape} {image.dtype}")
+        diff = image.astype(np.float32)
+        diff -= self.reference
+        diff -= frame_offset(image, self.reference_u8, self.inlier_grey)
+        diff *= self.scale
+        sat = image >= self.saturation_level
+        return np.concatenate([np.moveaxis(diff, -1, 0), np.moveaxis(sat, -1, 0).astype(np.float32),
+                               self.fixed], axis=0)
+
+
+def colour_features(image_u8, reference_u8, grid: OutputGrid, saturation_level: int = 254,
+                    inlier_grey: float = 12.0) -> np.ndarray:
+    """(11, H, W) float32 features of one rectified frame (module docstring)."""
+    return FeatureMaker(reference_u8, grid, saturation_level, inlier_grey)(image_u8)
+
+
+class LearnedReadout:
+    """An onnxruntime session of a learned read-out network and its contract.
+
+    path : the ``.onnx`` file. threads : intra-op threads (1: the runtime's default, one core).
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ReadoutError(f"learned read-out {self.path} not found")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise ReadoutError(f"learned read-out {self.path}: not a loadable ONNX model ({e})") from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        self.metadata = dict(meta)
+        fmt = meta.get("readout_format")
+        if fmt != READOUT_FORMAT:
+            raise ReadoutError(f"learned read-out {self.path}: metadata field 'readout_format' must "
+                               f"be {READOUT_FORMAT!r}, got {fmt!r}")
+        expected = {"feature_version": str(FEATURE_VERSION),
+                    "colour_scale_grey": repr(COLOUR_SCALE_GREY),
+                    "position_scale_mm": repr(POSITION_SCALE_MM)}
+        for key, value in expected.items():
+            if meta.get(key) != value:
+                raise ReadoutError(f"learned read-out {self.path}: metadata field {key!r} must be "
+                                   f"{value!r} (this version's features), got {meta.get(key)!r}")
+        self.saturation_level = int(meta.get("saturation_level", "254"))
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1 or inputs[0].shape[1] != N_FEATURES:
+            raise ReadoutError(f"learned read-out {self.path}: expected one input of "
+                               f"{N_FEATURES} channels, got {[(i.name, i.shape) for i in inputs]}")
+        self.input_name = inputs[0].name
+        self.output_names = [o.name for o in self.session.get_outputs()]
+        if "depth_mm" not in self.output_names:
+            raise ReadoutError(f"learned read-out {self.path}: no output 'depth_mm' "
+                               f"(outputs {self.output_names})")
+
+    def depth_mm(self, features: np.ndarray) -> np.ndarray:
+        """Depth (H, W) float32 mm from features (11, H, W) float32."""
+        out = self.session.run(["depth_mm"], {self.input_name: features[None]})[0]
+        return np.asarray(out[0], np.float32)
