@@ -213,7 +213,7 @@ def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | 
     from tactile_deploy.runtime.pipeline import Laps, frame_to_mesh
     from tactile_deploy.runtime.plugins import SensorPlugin
     from tactile_deploy.runtime.predictor import MeshPredictor
-    from tactile_deploy.runtime.run import RunOptions, Runner
+    from tactile_deploy.runtime.run import Runner, RunOptions
     from tactile_deploy.runtime.sources.base import ArrayPlayback
     from tactile_deploy.runtime.sources.factory import open_clip
 
@@ -255,6 +255,19 @@ def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | 
                                    else "DepthFromShading"),
                       "ours_p50_ms": pct(ours, 50), "reference_p50_ms": pct(theirs, 50),
                       "ratio": pct(theirs, 50) / pct(ours, 50), "max_depth_difference_mm": diff}
+
+    # -- the optional learned read-out on the same frames (a plugin that names one)
+    readout_path = ROOT / "exported" / "gelslim_readout.onnx"
+    if plugin.readout is None and readout_path.is_file():
+        from tactile_deploy.imaging.learned_readout import LearnedReadout
+        from tactile_deploy.runtime.pipeline import ImagingPipeline
+
+        m = plugin.manifest
+        learned = ImagingPipeline(m.camera, plugin.shading_model, plugin.reference_frame,
+                                  plugin.noise_reference, m.noise_reference.handling,
+                                  m.depth_grid, plugin.hooks, readout=LearnedReadout(readout_path))
+        lr_ms = time_calls(learned.imaging_depth, sample)
+        res["imaging"]["learned_readout_p50_ms"] = pct(lr_ms, 50)
 
     # -- model: onnxruntime vs torch
     depths = [(pipe.frame_to_depth(f)[None, None],) for (f,) in sample[:200]]
@@ -340,6 +353,11 @@ def markdown(r: dict) -> str:
         f"max depth difference {1e3 * im['max_depth_difference_mm']:.1f} um) "
         f"| {im['ours_p50_ms']:.3f} ms | {im['reference_p50_ms']:.3f} ms | {im['ratio']:.1f} x |",
     ]
+    if "learned_readout_p50_ms" in im:
+        lines.append(f"| imaging with the optional learned read-out (`exported/gelslim_readout.onnx`, "
+                     f"instead of the shading table and integration; docs/shading.md) vs the "
+                     f"plugin's shading model | {im['learned_readout_p50_ms']:.3f} ms | "
+                     f"{im['ours_p50_ms']:.3f} ms | {im['ours_p50_ms'] / im['learned_readout_p50_ms']:.2f} x |")
     if "torch_p50_ms" in md:
         lines.append(f"| model: onnxruntime ({r['model_file']}) vs torch eager ({md['torch_bundle']}), "
                      f"one thread; displacements agree to {1e3 * md['max_displacement_difference_mm']:.0f} um "
