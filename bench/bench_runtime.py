@@ -85,8 +85,7 @@ def reference_imaging(plugin):
     if plugin.readout is not None:     # the plugin reads frames with its learned read-out
         from tactile_deploy.imaging.learned_readout import FeatureMaker
 
-        features = FeatureMaker(ref, g, plugin.readout.saturation_level,
-                                plugin.shading_model.header.offset_inlier_grey)
+        features = FeatureMaker(ref, g, plugin.readout.saturation_level)
         gain = m.readout_depth_gain
 
         def read(rect):

@@ -60,6 +60,9 @@ class FeatureMaker:
 
     reference_u8 : (H, W, 3) uint8 rectified no-contact frame on ``grid``.
     grid : the imaging grid (sensor frame, mm).
+    saturation_level, inlier_grey : raw value counted as saturated, and the offset estimate's
+        window (:func:`~.shading.frame_offset`); the defaults are the ones read-outs are trained
+        with.
     """
 
     def __init__(self, reference_u8: np.ndarray, grid: OutputGrid, saturation_level: int = 254,

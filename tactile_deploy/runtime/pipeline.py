@@ -344,8 +344,7 @@ class ImagingPipeline:
             from tactile_deploy.imaging.learned_readout import FeatureMaker
 
             self.features = FeatureMaker(self.tables.reference_u8, camera.grid,
-                                         readout.saturation_level,
-                                         shading.header.offset_inlier_grey)
+                                         readout.saturation_level)
         h = shading.header
         self.solver = poisson_solver(h.image_shape, "dirichlet",
                                      (h.poisson_weight_x, h.poisson_weight_y))
