@@ -370,3 +370,33 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     for x, y, d in plan:                                        # the stage went to each contact
         target = sim.frame.sensor_to_stage(x, y, -d)
         assert np.min(np.linalg.norm(history - target, axis=1)) < 1e-3  # G-code: 4 decimals
+
+
+def test_plugin_step_with_the_learned_readout(wizard_run):
+    """``--redo plugin`` with the design's learned read-out in the config: the plugin names it,
+    its depth gain is calibrated from the rig's presses, and its noise reference is made through
+    it (a no-contact frame comes out flat)."""
+    from tactile_deploy.runtime.pipeline import ImagingPipeline
+    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
+
+    folder, out, _, _ = wizard_run
+    readout = Path(__file__).resolve().parent.parent / "exported" / "gelslim_readout.onnx"
+    cfg = folder / "readout.json"
+    cfg.write_text(json.dumps({**CONFIG, "readout": str(readout)}))
+    res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
+                  "--config", cfg, "--out", out, "--yes", "--redo", "plugin")
+    assert res.exit_code == 0, res.output
+    report = validate_plugin(out)
+    assert report.ok and "learned read-out" in report.checked, report.problems
+    plugin = SensorPlugin.load(out)
+    m = plugin.manifest
+    assert m.readout is not None and m.readout.path.endswith("exported/gelslim_readout.onnx")
+    assert 0.85 < m.readout_depth_gain < 1.15
+    assert "rig presses" in m.provenance["readout"] and "zero offset" in m.provenance["readout"]
+    pipe = ImagingPipeline.from_plugin(plugin)
+    assert pipe.readout is not None and pipe.readout_gain == np.float32(m.readout_depth_gain)
+    from tactile_deploy.sensors import load_sensor
+
+    sensor = load_sensor(SENSOR)
+    flat = pipe.frame_to_depth(sensor.renderer.reference_frame(np.random.default_rng(9)))
+    assert np.abs(flat).max() < 0.02, np.abs(flat).max()
