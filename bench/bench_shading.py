@@ -337,11 +337,15 @@ def virtual_accuracy(small: bool = False) -> dict:
                 ("fem, colour prior", camera, presses, profiles, fit_cfg, None),
                 ("fem, colour prior, exact camera", exact, exact_presses, profiles, fit_cfg, None),
                 ("learned read-out", camera, presses, profiles, fit_cfg, readout))
+    fitted = {}   # the learned read-out's pipeline takes the wizard's model, fitted once
     for key, cam, prs, prof, cfg, ro in variants:
         if key == "learned read-out" and ro is None:
             continue
         prs.profiles = prof
-        model = fit_shading(prs, config.presses.ball_radius_mm, pitch, cfg).model
+        fit_key = (id(cam), id(prs), id(prof), cfg)
+        if fit_key not in fitted:
+            fitted[fit_key] = fit_shading(prs, config.presses.ball_radius_mm, pitch, cfg).model
+        model = fitted[fit_key]
         plain = ImagingPipeline(cam, model, reference, None, "keep", readout=ro)
         noise = np.mean([plain.frame_to_depth(f) for f in reference_frames], axis=0)
         pipeline = ImagingPipeline(cam, model, reference, noise.astype(np.float32), "subtract",

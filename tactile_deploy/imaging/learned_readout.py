@@ -7,7 +7,7 @@ pixel by the shape around it. It is trained once per sensor *design* on a family
 (LED placement and brightness varied within assembly tolerances, ``training/shading_net``), so a
 new unit needs only its own no-contact reference frame and camera mapping.
 
-Input features (:func:`colour_features`, one (11, H, W) float32 stack per frame on the imaging
+Input features (:class:`FeatureMaker`, one (11, H, W) float32 stack per frame on the imaging
 grid; H, W any size, the network is fully convolutional):
 
 ==========  ==============================================================================
@@ -94,12 +94,6 @@ class FeatureMaker:
         sat = image >= self.saturation_level
         return np.concatenate([np.moveaxis(diff, -1, 0), np.moveaxis(sat, -1, 0).astype(np.float32),
                                self.fixed], axis=0)
-
-
-def colour_features(image_u8, reference_u8, grid: OutputGrid, saturation_level: int = 254,
-                    inlier_grey: float = 12.0) -> np.ndarray:
-    """(11, H, W) float32 features of one rectified frame (module docstring)."""
-    return FeatureMaker(reference_u8, grid, saturation_level, inlier_grey)(image_u8)
 
 
 class LearnedReadout:
