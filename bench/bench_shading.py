@@ -289,6 +289,7 @@ def virtual_accuracy(small: bool = False) -> dict:
     )
     from calibration.wizard.config import wizard_config_from_dict
     from calibration.wizard.steps import (
+        finetune_readout_on_presses,
         press_profiles,
         rectifier_for,
         shading_fit_config,
@@ -324,6 +325,7 @@ def virtual_accuracy(small: bool = False) -> dict:
                          "../shared/data beside the checkout")
     shapes = virtual_shape_presses(sensor, camera.grid, novel, 8 if small else 16)
     out = {"presses": int(keep.sum()), "sets": sets, "errors": {}, "bins": fit_cfg.bins,
+           "readout_steps": config.readout_steps,
            "shapes": shapes, "shape_errors": {},
            "camera": camera_position_error_mm(camera, sensor.optics.camera)}
     # the same presses rectified by the virtual camera's own mapping (same imaging grid)
@@ -336,16 +338,22 @@ def virtual_accuracy(small: bool = False) -> dict:
                 ("fem", camera, presses, profiles, before_cfg, None),
                 ("fem, colour prior", camera, presses, profiles, fit_cfg, None),
                 ("fem, colour prior, exact camera", exact, exact_presses, profiles, fit_cfg, None),
-                ("learned read-out", camera, presses, profiles, fit_cfg, readout))
+                ("learned read-out", camera, presses, profiles, fit_cfg, readout),
+                ("learned read-out, fine-tuned", camera, presses, profiles, fit_cfg, readout))
     fitted = {}   # the learned read-out's pipeline takes the wizard's model, fitted once
+    tuned_dir = tempfile.TemporaryDirectory()
     for key, cam, prs, prof, cfg, ro in variants:
-        if key == "learned read-out" and ro is None:
+        if key.startswith("learned read-out") and ro is None:
             continue
         prs.profiles = prof
         fit_key = (id(cam), id(prs), id(prof), cfg)
         if fit_key not in fitted:
             fitted[fit_key] = fit_shading(prs, config.presses.ball_radius_mm, pitch, cfg).model
         model = fitted[fit_key]
+        if key == "learned read-out, fine-tuned":   # as the wizard's plugin step does
+            ro, out["readout_finetune"] = finetune_readout_on_presses(
+                config, cam, model, reference, reference_frames, ro, d, material,
+                Path(tuned_dir.name) / "readout.onnx", VIRTUAL_SENSOR)
         plain = ImagingPipeline(cam, model, reference, None, "keep", readout=ro)
         noise = np.mean([plain.frame_to_depth(f) for f in reference_frames], axis=0)
         pipeline = ImagingPipeline(cam, model, reference, noise.astype(np.float32), "subtract",
@@ -353,14 +361,14 @@ def virtual_accuracy(small: bool = False) -> dict:
         if ro is not None:   # the unit's depth gain, as the wizard calibrates it
             gain, _ = readout_depth_gain(pipeline, d["raw"][keep], d["tip_mm"][keep, 2],
                                          material.get("depth_offset_mm") or 0.0)
-            out["readout_gain"] = gain
+            out["readout_gain" if ro is readout else "finetuned_gain"] = gain
             out["rig_offset_um"] = 1e3 * (material.get("depth_offset_mm") or 0.0)
             pipeline = ImagingPipeline(cam, model, reference, gain * noise.astype(np.float32),
                                        "subtract", readout=ro, readout_gain=gain)
         out["errors"][key] = {
             name: near_contact_errors([pipeline.frame_to_depth(f) for f in new.frames], new)
             for name, new in sets.items()}
-        if key in ("fem, colour prior", "learned read-out"):
+        if key in ("fem, colour prior", "learned read-out", "learned read-out, fine-tuned"):
             out["shape_errors"][key] = contact_region_errors(
                 [pipeline.frame_to_depth(f) for f in shapes.frames], shapes.truths)
         if key == "fem, colour prior":
@@ -418,10 +426,28 @@ VIRTUAL_NAMES = {
                         "with the wizard's camera mapping, reference frame and depth gain "
                         "({readout_gain:.3f}, from its presses and the rig's zero offset "
                         "{rig_offset_um:.1f} um)",
+    "learned read-out, fine-tuned": "the same read-out fine-tuned on this unit by the wizard "
+                                    "(`readout_steps` {readout_steps}: {readout_finetune}), "
+                                    "depth gain {finetuned_gain:.3f}",
     "true gradients": "reference: the true gradients integrated (zero border)"}
 #: The learned read-out of the virtual sensor's design (training/shading_net).
 READOUT_PATH = Path(__file__).resolve().parent.parent / "exported" / "gelslim_readout.onnx"
 VIRTUAL_SETS = {"bench": "new presses, seed 2024", "second": "second set, seed 77"}
+
+
+#: Variants compared on other shapes and against the target, and their names there.
+SHAPE_ROW_NAMES = {"fem, colour prior": "the wizard's shading model",
+                   "learned read-out": "the learned read-out",
+                   "learned read-out, fine-tuned": "the learned read-out fine-tuned on the unit"}
+
+
+def variant_name(key: str, res: dict) -> str:
+    """A variant's row name in BENCHMARKS.md, with the run's settings filled in."""
+    return VIRTUAL_NAMES[key].format(
+        bins=res["bins"], readout_gain=res.get("readout_gain", 1.0),
+        rig_offset_um=res.get("rig_offset_um", 0.0), finetuned_gain=res.get("finetuned_gain", 1.0),
+        readout_steps=res.get("readout_steps", 0),
+        readout_finetune=res.get("readout_finetune", "").split(" (")[0])
 
 
 def target_verdict(errors: dict, sets: dict) -> str:
@@ -473,7 +499,7 @@ def virtual_markdown(res: dict) -> str:
         for key, per_set in res["errors"].items():
             e = per_set[name]
             lines.append(
-                f"| {VIRTUAL_NAMES[key].format(bins=res['bins'], readout_gain=res.get('readout_gain', 1.0), rig_offset_um=res.get('rig_offset_um', 0.0))} | "
+                f"| {variant_name(key, res)} | "
                 f"{e['near'][inside].mean():.1f} | "
                 f"{e['near'][inside].max():.1f} | {np.abs(e['peak'][inside]).mean():.0f} | "
                 f"{e['whole'][inside].mean():.1f} | {e['near'][edge].mean():.1f} | "
@@ -488,16 +514,14 @@ def virtual_markdown(res: dict) -> str:
               "| read-out | contact region RMSE, mean | worst | mean abs peak | whole-frame mean |",
               "|---|---:|---:|---:|---:|"]
     for key, e in res["shape_errors"].items():
-        label = ("the wizard's shading model" if key == "fem, colour prior"
-                 else "the learned read-out")
+        label = SHAPE_ROW_NAMES[key]
         lines.append(f"| {label} | {np.nanmean(e['region']):.1f} | {np.nanmax(e['region']):.1f} | "
                      f"{np.abs(e['peak']).mean():.0f} | {e['whole'].mean():.1f} |")
     cam = res["camera"]
     lines += ["", (f"The fitted camera mapping samples the frame {cam['mean']:.2f} mm from where the "
               f"virtual camera's does on average over the imaging grid, {cam['edge_band']:.2f} mm "
               f"in the band of 8 cells along its edges, {cam['max']:.2f} mm at most.")]
-    for key, what in (("fem, colour prior", "the wizard's shading model"),
-                      ("learned read-out", "the learned read-out")):
+    for key, what in SHAPE_ROW_NAMES.items():
         if key in res["errors"]:
             lines += ["", f"Target: absolute depth RMSE <= 20 um on virtual-sensor presses "
                       f"(within 1.5 contact radii), {what}: " + target_verdict(res["errors"][key], sets)]

@@ -5,7 +5,8 @@ virtual sensors of the same names, plus a demo clip.
                                     [--overwrite] [--work DIR]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
     python plugins/build_shipped.py --readout          # plugins that read frames with the
-                                                       # learned read-out (not the shipped ones)
+                                                       # learned read-out, fine-tuned on each
+                                                       # unit's presses (not the shipped ones)
 
 Each plugin is made by ``tactile-deploy calibrate`` (:func:`calibration.wizard.wizard.run_wizard`,
 docs/calibration.md), run non-interactively with the committed config ``plugins/wizard/NAME.json``

@@ -225,3 +225,64 @@ def test_a_changed_readout_file_is_refused_by_validation(gelslim2_with_readout, 
     report = validate_plugin(folder)
     assert not report.ok
     assert any("readout" in p for p in report.problems), report.problems
+
+
+def test_network_from_onnx_gives_back_the_exported_network(tmp_path):
+    """The weights read back from an exported read-out make the same depth as onnxruntime does
+    with the file; a file that is not a read-out is named."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from training.shading_net.finetune import network_from_onnx
+    from training.shading_net.network import DEPTH_UNIT_MM
+
+    _, path = _tiny_network(tmp_path)
+    net = network_from_onnx(path)
+    assert net.width == 4
+    x = np.random.default_rng(4).normal(size=(11, 24, 40)).astype(np.float32)
+    with torch.no_grad():
+        got = net(torch.from_numpy(x)[None])[0, 2].numpy() * DEPTH_UNIT_MM
+    np.testing.assert_allclose(got, LearnedReadout(path).depth_mm(x), atol=1e-5)
+    other = tmp_path / "identity.onnx"
+    graph = helper.make_graph([helper.make_node("Identity", ["a"], ["b"])], "g",
+                              [helper.make_tensor_value_info("a", TensorProto.FLOAT, [1])],
+                              [helper.make_tensor_value_info("b", TensorProto.FLOAT, [1])])
+    onnx.save(helper.make_model(graph), str(other))
+    with pytest.raises(ValueError, match="identity.onnx: not a read-out"):
+        network_from_onnx(other)
+
+
+def test_finetuning_moves_a_network_to_a_planted_one(tmp_path):
+    """Fine-tuning a network on the outputs of another (planted) network brings its depth on
+    held-out inputs much closer to the planted one's."""
+    from training.shading_net.finetune import finetune_network, network_from_onnx
+    from training.shading_net.network import DEPTH_UNIT_MM, ReadoutNet
+
+    torch.manual_seed(7)
+    planted = ReadoutNet(4).eval()
+    _, path = _tiny_network(tmp_path)
+    student = network_from_onnx(path)
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(40, 11, 16, 16)).astype(np.float32)
+    with torch.no_grad():
+        y = planted(torch.from_numpy(x)).numpy()
+
+    def depth_error(net):
+        with torch.no_grad():
+            d = net(torch.from_numpy(x[32:]))[:, 2].numpy()
+        return float(np.sqrt(np.mean((d - y[32:, 2]) ** 2))) * DEPTH_UNIT_MM
+
+    before = depth_error(student)
+    student, losses = finetune_network(student, x[:32], y[:32], steps=300, lr=3e-3, seed=1)
+    assert np.mean(losses[-20:]) < 0.2 * np.mean(losses[:20])
+    assert depth_error(student) < 0.3 * before, (before, depth_error(student))
+
+
+def test_finetuning_without_torch_says_what_to_install(monkeypatch):
+    import sys
+
+    from calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
+
+    monkeypatch.setitem(sys.modules, "training.shading_net.finetune", None)
+    with pytest.raises(FinetuneUnavailable, match=r"tactile-deploy\[train\].*readout_steps to 0"):
+        finetune_unit_readout(None, [], [], [], Path("x.onnx"), "unit")

@@ -29,13 +29,14 @@ class PressProfile:
     r_mm : (n,) float64, distances from the press centre, mm, uniform from 0.
     depth_mm : (n,) float64, depth at r_mm, mm, positive into the gel.
     contact_radius_mm : where the FEM surface leaves the ball, mm. press_depth_mm : indentation
-        of the ball, mm.
+        of the ball, mm. centre_mm : (x, y) of the press centre, sensor frame, mm, when known.
     """
 
     r_mm: np.ndarray
     depth_mm: np.ndarray
     contact_radius_mm: float
     press_depth_mm: float
+    centre_mm: tuple[float, float] | None = None
 
     def slope(self, r_mm) -> np.ndarray:
         """d depth / d r at ``r_mm`` (dimensionless, mm per mm); 0 beyond the profile."""
@@ -45,6 +46,17 @@ class PressProfile:
     def depth(self, r_mm) -> np.ndarray:
         """Depth at ``r_mm`` (mm); 0 beyond the profile."""
         return np.interp(np.asarray(r_mm, np.float64), self.r_mm, self.depth_mm, right=0.0)
+
+    def depth_map(self, grid) -> np.ndarray:
+        """Depth (ny, nx) float32 mm at the cell centres of ``grid`` (an
+        :class:`~tactile_deploy.imaging.camera_mapping.OutputGrid`, sensor frame) around
+        ``centre_mm``; 0 beyond the profile."""
+        from tactile_deploy.imaging.camera_mapping import grid_centres_mm
+
+        if self.centre_mm is None:
+            raise ValueError("this profile has no centre_mm: it cannot be placed on a grid")
+        x, y = grid_centres_mm(grid)
+        return self.depth(np.hypot(x - self.centre_mm[0], y - self.centre_mm[1])).astype(np.float32)
 
     def image_gradients(self, cols, rows, centre_px, mm_per_px: float) -> np.ndarray:
         """Gradients of depth along image columns and rows (N, 2), mm per mm, at pixels
@@ -119,7 +131,7 @@ class BallPressModel:
         # unlike the set of contact nodes ~1 mm apart)
         off = np.flatnonzero((fem_mean > sphere + 1e-6) & (r > 2 * step_mm))
         a = float(r[off[0]]) if len(off) else float(r[-1])
-        return PressProfile(r, depth, a, float(depth_mm))
+        return PressProfile(r, depth, a, float(depth_mm), (float(x_mm), float(y_mm)))
 
     def depth_for_contact_radius(self, x_mm: float, y_mm: float, contact_radius_mm: float,
                                  max_depth_mm: float = 1.5) -> float:

@@ -425,15 +425,19 @@ def _press_set(ctx: Context):
                     d["circles"][keep]), d
 
 
-def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii: float) -> list:
+def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii: float,
+                   depth_offset_mm: float = 0.0, nu: float | None = None) -> list:
     """FEM depth profiles (:class:`~calibration.shading.press_profile.PressProfile`) of the
     kept presses, out to ``reach_radii`` contact radii: the ball on the family's pad at the rig's
-    contact (sensor frame), or, for hand presses, at the circle's centre and the depth whose FEM
-    contact radius is the circle's."""
+    contact (sensor frame) pressed its intrusion plus ``depth_offset_mm`` (the rig's zero
+    offset, once the FEM step has fitted it), or, for hand presses, at the circle's centre and
+    the depth whose FEM contact radius is the circle's. ``nu``: the gel's Poisson ratio (None:
+    the FEM settings' prior)."""
     from calibration.shading.press_profile import BallPressModel
 
     cfg = config
-    model = BallPressModel(cfg.family, cfg.presses.ball_radius_mm, cfg.fem.prior_nu)
+    model = BallPressModel(cfg.family, cfg.presses.ball_radius_mm,
+                           cfg.fem.prior_nu if nu is None else float(nu))
     g = camera.grid
     out = []
     for i in np.flatnonzero(presses_npz["keep"]):
@@ -442,6 +446,7 @@ def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii:
         tip = presses_npz["tip_mm"][i]
         if np.all(np.isfinite(tip)):
             x, y, depth = tip
+            depth = depth + depth_offset_mm
         else:
             x = g.x_min_mm + (col + 0.5) * g.pitch_x_mm
             y = g.y_max_mm - (row + 0.5) * g.pitch_y_mm
@@ -687,7 +692,9 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     shading = load_shading(ctx.work.path("shading.npz"))
     shutil.copyfile(ctx.work.path("shading.npz"), folder / "shading.npz")
     _png(folder / "reference.png", ref)
-    readout = None
+    d = _load(ctx.work, "presses.npz")
+    material = json.loads(ctx.work.path("fem.json").read_text())
+    readout, tune_note = None, None
     if cfg.readout is not None:
         from tactile_deploy.imaging.learned_readout import LearnedReadout, ReadoutError
 
@@ -695,13 +702,16 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
             readout = LearnedReadout(cfg.readout)
         except ReadoutError as e:
             raise StepError(f"config field 'readout': {e}") from None
+        if cfg.readout_steps > 0:
+            readout, tune_note = _finetune_readout(ctx, camera, shading, ref, ref_frames,
+                                                   readout, d, material, folder)
     plain = ImagingPipeline(camera, shading, ref, None, "keep", readout=readout)
     noise = np.mean([plain.frame_to_depth(f) for f in ref_frames], axis=0).astype(np.float32)
-    d = _load(ctx.work, "presses.npz")
-    material = json.loads(ctx.work.path("fem.json").read_text())
     gain, gain_note = 1.0, None
     if readout is not None:
         gain, gain_note = _readout_gain(camera, shading, ref, noise, readout, d, material)
+        if tune_note is not None:
+            gain_note = f"{gain_note}; {tune_note}"
         noise = noise * np.float32(gain)
     np.save(folder / "noise_reference.npy", noise)
     demo = np.concatenate([ref_frames[:4], d["raw"][d["keep"]]])
@@ -744,6 +754,54 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
         files["readout"] = readout.path.resolve()
     manifest = write_plugin(folder, fields, files)
     return manifest, [f"model: {'copied into the plugin' if cfg.copy_model else model}"]
+
+
+def _finetune_readout(ctx: Context, camera, shading, ref, ref_frames, readout, d, material,
+                      folder: Path):
+    """:func:`finetune_readout_on_presses` in the plugin step, its progress on the UI."""
+    from calibration.shading.readout_finetune import FinetuneUnavailable
+
+    ctx.ui.say(f"fine-tuning the learned read-out on {int(d['keep'].sum())} presses "
+               f"({ctx.config.readout_steps} steps)")
+
+    def log(step, steps, loss, seconds):
+        ctx.ui.say(f"  step {step}/{steps}: loss {loss:.3g} ({seconds:.0f} s)")
+
+    try:
+        return finetune_readout_on_presses(ctx.config, camera, shading, ref, ref_frames, readout,
+                                           d, material, folder / "readout.onnx", ctx.sensor, log)
+    except FinetuneUnavailable as e:
+        raise StepError(str(e)) from None
+
+
+def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_frames, readout,
+                                presses_npz: dict, material: dict, out: Path, unit: str,
+                                log=None):
+    """The design's ``readout`` fine-tuned on the kept presses of ``presses_npz`` and the
+    no-contact ``ref_frames`` (:mod:`calibration.shading.readout_finetune`; targets: the
+    presses' FEM depth profiles at the rig's intrusion plus the FEM step's zero offset, with its
+    nu), ``config.readout_steps`` steps, written to ``out``: ``(LearnedReadout of it, a line for
+    the provenance)``."""
+    from calibration.shading.readout_finetune import finetune_unit_readout
+    from tactile_deploy.imaging.learned_readout import LearnedReadout
+    from tactile_deploy.runtime.pipeline import ImagingPipeline
+
+    d = presses_npz
+    keep = d["keep"]
+    if not keep.any():
+        raise StepError("no kept presses to fine-tune the learned read-out on: redo the presses "
+                        "step, or set readout_steps to 0 in the config")
+    offset = material.get("depth_offset_mm")
+    nu = material.get("nu", config.fem.prior_nu)
+    profiles = press_profiles(config, d, camera, 4.0, offset or 0.0, nu)
+    depths = np.stack([p.depth_map(camera.grid) for p in profiles])
+    pipeline = ImagingPipeline(camera, shading, ref, None, "keep", readout=readout)
+    result = finetune_unit_readout(pipeline, d["raw"][keep], depths, ref_frames, out, unit,
+                                   steps=config.readout_steps, log=log)
+    source = (f"depth targets at the rig's intrusion plus its zero offset {1e3 * offset:+.1f} um"
+              if offset is not None
+              else "depth targets at the rig's intrusion (no zero offset known: FEM fit off)")
+    return LearnedReadout(result.path), f"{result.summary()} ({source}, nu {nu:.3g})"
 
 
 def _readout_gain(camera, shading, ref, noise, readout, d, material) -> tuple[float, str]:

@@ -373,6 +373,16 @@ class ImagingPipeline:
         """Raw frame -> (ny, nx, 3) uint8 on the imaging grid (rectify and resample stages)."""
         return resample_to_grid(rectify_frame(frame, self.rectifier), self.rectifier)
 
+    def readout_features(self, frame) -> np.ndarray:
+        """(11, ny, nx) float32 input of the learned read-out for a raw frame (checked,
+        preprocessed by the hooks, rectified), as :meth:`imaging_depth` makes it."""
+        if self.readout is None:
+            raise ValueError("this pipeline has no learned read-out")
+        frame = check_frame(frame, self.frame_shape)
+        if self.hooks is not None:
+            frame = self.hooks.preprocess_frame(frame)
+        return self.features(self.rectify(frame))
+
     def imaging_depth(self, frame, laps=None) -> np.ndarray:
         """Depth (ny, nx) float32 mm on the imaging grid (before resampling and noise handling)."""
         laps = laps or _NO_LAPS
