@@ -283,6 +283,6 @@ def test_finetuning_without_torch_says_what_to_install(monkeypatch):
 
     from calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
 
-    monkeypatch.setitem(sys.modules, "training.shading_net.finetune", None)
+    monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(FinetuneUnavailable, match=r"tactile-deploy\[train\].*readout_steps to 0"):
         finetune_unit_readout(None, [], [], [], Path("x.onnx"), "unit")

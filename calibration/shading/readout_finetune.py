@@ -68,6 +68,9 @@ def finetune_unit_readout(pipeline, press_frames, press_depths_mm, no_contact_fr
         callback every 100 steps.
     """
     try:
+        import onnx  # noqa: F401  (the network is read from and written to ONNX)
+        import torch  # noqa: F401
+
         from training.shading_net.finetune import finetune_network, network_from_onnx
         from training.shading_net.train import export_onnx, targets
     except ImportError as e:
