@@ -406,8 +406,8 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     """With ``readout_steps`` the plugin step continues the design's read-out on the unit's rig
     presses (their FEM depth at the rig's intrusion plus the fitted zero offset) and writes it
     into the plugin. Against the true surface of new presses the wizard never saw, it reads
-    the ball's depth closer than the design's read-out as it is: a lower RMSE near the contact
-    and a smaller peak error (the design's read-out reads peaks about 30 um short here)."""
+    the ball's depth within the calibration's 20 um target near the contact and closer than
+    the design's read-out as it is (mean and worst press, peak depth)."""
     import hashlib
 
     from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
@@ -418,7 +418,7 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     folder, out, _, _ = wizard_run
     base = ROOT / "exported" / "gelslim_readout.onnx"
     cfg = folder / "readout_tuned.json"
-    cfg.write_text(json.dumps({**CONFIG, "readout": str(base), "readout_steps": 400}))
+    cfg.write_text(json.dumps({**CONFIG, "readout": str(base), "readout_steps": 800}))
     res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
                   "--config", cfg, "--out", out, "--yes", "--redo", "plugin")
     assert res.exit_code == 0, res.output
@@ -441,8 +441,10 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
                              readout=LearnedReadout(base))
     e_tuned = near_contact_errors([pipe.frame_to_depth(f) for f in presses.frames], presses)
     e_design = near_contact_errors([design.frame_to_depth(f) for f in presses.frames], presses)
-    print("near-contact RMSE um, design / fine-tuned:", e_design["near"].mean(),
-          e_tuned["near"].mean(), "mean abs peak:", np.abs(e_design["peak"]).mean(),
-          np.abs(e_tuned["peak"]).mean())
-    assert e_tuned["near"].mean() < 0.9 * e_design["near"].mean()
-    assert np.abs(e_tuned["peak"]).mean() < 0.7 * np.abs(e_design["peak"]).mean()
+    print("near-contact RMSE um, design / fine-tuned: mean", e_design["near"].mean(),
+          e_tuned["near"].mean(), "worst", e_design["near"].max(), e_tuned["near"].max(),
+          "mean abs peak:", np.abs(e_design["peak"]).mean(), np.abs(e_tuned["peak"]).mean())
+    assert e_tuned["near"].mean() <= 20.0                     # the calibration's depth target
+    assert e_tuned["near"].mean() < e_design["near"].mean()
+    assert e_tuned["near"].max() < 0.8 * e_design["near"].max()
+    assert np.abs(e_tuned["peak"]).mean() < np.abs(e_design["peak"]).mean()
