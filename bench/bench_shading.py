@@ -373,6 +373,7 @@ def virtual_accuracy(small: bool = False) -> dict:
                 [pipeline.frame_to_depth(f) for f in shapes.frames], shapes.truths)
         if key == "fem, colour prior":
             wizard_pipeline = pipeline
+    tuned_dir.cleanup()   # the fine-tuned read-out is loaded; its file is not needed any more
     # the most a per-pixel confidence weighting of the integration could gain
     out["errors"]["oracle weights"] = {
         name: near_contact_errors(oracle_weighted_depths(wizard_pipeline, new,
