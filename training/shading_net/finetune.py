@@ -44,13 +44,6 @@ def network_from_onnx(path: str | Path):
     return net
 
 
-def onnx_metadata(path: str | Path) -> dict[str, str]:
-    """The metadata properties of an ONNX file."""
-    import onnx
-
-    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
-
-
 def finetune_network(net, features: np.ndarray, targets: np.ndarray, steps: int,
                      lr: float = 1e-4, batch: int = 8, seed: int = 0, log=None):
     """Continue ``net`` on frames ``features`` (N, 11, H, W) float32 with ``targets`` (N, 3, H,
