@@ -208,6 +208,45 @@ def test_target_frames_show_the_pins_near_their_true_pixels(gelslim1):
     assert np.median(mm) < 0.1 and np.percentile(mm, 95) < 0.3, np.sort(mm)[-5:]
 
 
+@pytest.mark.parametrize("depth_mm", [0.35, 0.5])
+def test_dot_detection_finds_the_pins_apexes_and_the_true_camera(gelslim2, depth_mm):
+    """The pressed pin grid of the virtual GelSlim 2 (LEDs at the rim, clipped channels, a
+    strong lens): the detected dot centres against the pins' true pixels (the sensor's own
+    camera mapping), and the mapping fitted from them against that camera over the imaging grid.
+    The blobs' centroids are the check's teeth: pulled towards the lit flank, they miss by px."""
+    from calibration.camera.dots import calibrate_dots, detect_dots
+    from calibration.camera.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.camera_mapping import build_remap
+    from tactile_deploy.indenters import ContactPose
+
+    rec = gelslim2.record_target_frames(poses=[ContactPose(depth_mm=depth_mm)])
+    true_px = rec.pins_px[0]
+    det = detect_dots(rec.frames[0], rec.reference, blur_sigma_px=6.0)
+
+    def errors(found):
+        return np.linalg.norm(true_px[:, None] - found[None], axis=2).min(axis=1)
+
+    apex, centroid = errors(det.centres_px), errors(det.centroids_px)
+    assert det.at_apex.all() and len(det.centres_px) == 63
+    assert np.median(apex) < 0.8 and apex.max() < 3.0, np.sort(apex)[-5:]
+    assert np.median(centroid) > 0.8 and centroid.max() > 5.0     # what the refinement fixes
+
+    camera = gelslim2.optics.camera
+    grid = imaging_grid(camera)
+
+    def mapping_error_mm(refine):
+        fit, _ = calibrate_dots(rec.frames[0], rec.reference, 2.5, grid_shape=(9, 7),
+                                u_axis="+x", v_axis="-y", free_lens=("k1", "k2"),
+                                blur_sigma_px=6.0, refine=refine)
+        a = np.asarray(build_remap(with_grid(fit.mapping, grid)), np.float64)
+        b = np.asarray(build_remap(with_grid(camera, grid)), np.float64)
+        return np.hypot(*(a - b)) * camera.mm_per_px_x
+
+    refined, plain = mapping_error_mm(True), mapping_error_mm(False)
+    assert refined.max() < 0.06 and refined.mean() < 0.03, (refined.mean(), refined.max())
+    assert plain.max() > 2 * refined.max() and plain.mean() > 2 * refined.mean()
+
+
 def test_simulate_cli_renders_rgb_frame(tmp_path):
     import cv2
     from typer.testing import CliRunner

@@ -10,7 +10,13 @@ Steps
 -----
 1. :func:`detect_dots`: ``|frame - reference|`` (norm over channels), Gaussian smoothing, a
    threshold well above the noise (and at least Otsu's), connected components; each component's
-   centre is its intensity-weighted centroid. Components touching the border are dropped.
+   intensity-weighted centroid. Components touching the border are dropped. Then
+   :func:`refine_to_apex` moves each centroid to its pin's apex: the LEDs light one flank of a
+   dent more than the other and clip channels there, so the centroid of the change is off the
+   pin (on the virtual GelSlim 2 by 1.5 px typically, up to 10 px near the image corners: 0.1
+   mm on average and up to 0.3 mm of error in the fitted mapping). The apex is flat: there every
+   channel is back at the reference's colour (darkened a little by the depth), and around it
+   each channel changes linearly with position, in opposite directions on opposite flanks.
 2. :func:`assign_grid_indices`: lattice indices by growing from a dot near the centre whose four
    neighbours are where its lattice vectors predict: each step predicts the neighbour at
    ``p +- a``, ``p +- b`` with ``a, b`` the local lattice vectors, updated from each accepted step,
@@ -53,20 +59,25 @@ _AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0)}
 class DotDetections:
     """Blobs found in a reference-subtracted frame.
 
-    centres_px : (N, 2) float64, raw px (u, v): intensity-weighted centroids.
+    centres_px : (N, 2) float64, raw px (u, v): the pins' apexes (:func:`refine_to_apex`), the
+        centroid where a blob is not a ring of change around an unchanged centre.
     areas_px : (N,) int, pixels above threshold per blob.
     strength : (H, W) float32, the smoothed change magnitude the blobs were cut from.
     threshold : float, the level used (same units as ``strength``).
+    centroids_px : (N, 2) float64, raw px: the blobs' intensity-weighted centroids.
+    at_apex : (N,) bool, whether ``centres_px`` is the refined apex (else the centroid).
     """
 
     centres_px: np.ndarray
     areas_px: np.ndarray
     strength: np.ndarray
     threshold: float
+    centroids_px: np.ndarray | None = None
+    at_apex: np.ndarray | None = None
 
 
 def detect_dots(frame: np.ndarray, reference: np.ndarray | None = None, *,
-                blur_sigma_px: float = 2.5, min_area_px: int = 8,
+                blur_sigma_px: float = 2.5, min_area_px: int = 8, refine: bool = True,
                 name: str = "frame") -> DotDetections:
     """Centres of the pressed dots.
 
@@ -74,6 +85,8 @@ def detect_dots(frame: np.ndarray, reference: np.ndarray | None = None, *,
         already reference-subtracted frame when ``reference`` is None.
     reference : same shape, the unpressed gel.
     blur_sigma_px : smoothing before thresholding, px; about half a dot's radius in the image.
+    refine : move the centroids to the pins' apexes (:func:`refine_to_apex`; needs a colour
+        frame and at least two dots); False keeps the centroids.
     """
     f = np.asarray(frame, dtype=np.float32)
     if f.ndim not in (2, 3):
@@ -112,12 +125,139 @@ def detect_dots(frame: np.ndarray, reference: np.ndarray | None = None, *,
         vv, uu = np.mgrid[y0:y0 + bh, x0:x0 + bw]
         centres.append(((sub * uu).sum() / total, (sub * vv).sum() / total))
         areas.append(area)
+    centroids = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    apexes, at_apex = centroids, np.zeros(len(centroids), bool)
+    if refine and f.ndim == 3 and len(centroids) >= 2:
+        raw = np.asarray(frame, np.float32) if reference is not None else None
+        apexes, at_apex = refine_to_apex(f, centroids, raw_frame=raw,
+                                         raw_reference=None if reference is None else r)
     return DotDetections(
-        centres_px=np.asarray(centres, dtype=np.float64).reshape(-1, 2),
+        centres_px=apexes,
         areas_px=np.asarray(areas, dtype=int),
         strength=s,
         threshold=threshold,
+        centroids_px=centroids,
+        at_apex=at_apex,
     )
+
+
+#: Expected radius of a pin's contact disc as a fraction of the lattice pitch (0.75 mm pins
+#: pressed 0.35 mm on a 2.5 mm pitch: 0.63 mm = 0.25 pitch).
+DOT_RADIUS_PER_PITCH = 0.25
+#: Raw grey levels at or beyond which a channel counts as clipped (dark or saturated).
+CLIP_LOW, CLIP_HIGH = 3.0, 252.0
+
+
+def refine_to_apex(diff: np.ndarray, centres_px: np.ndarray, *, raw_frame: np.ndarray | None = None,
+                   raw_reference: np.ndarray | None = None, fit_fraction: float = 0.3,
+                   iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Move blob centres to the apexes of the pins that made them.
+
+    diff : (H, W, C) float32, frame minus reference (grey levels). centres_px : (N, 2) raw px,
+    first estimates (the blobs' centroids; N >= 2: the lattice pitch is the distance to the
+    nearest other blob). raw_frame, raw_reference : (H, W, C) the frames themselves, to leave
+    out channels clipped at either end (None: every channel is used).
+
+    Each pin's disc of contact (radius ``DOT_RADIUS_PER_PITCH`` x the local pitch, r) changes the
+    colours in a ring around an unchanged apex. Start: within 0.8 r of the centroid, the pixel
+    whose smoothed change magnitude is lowest against the mean on a circle of 0.6 r around it.
+    Then, ``iterations`` times: within ``fit_fraction`` x r, a plane per unclipped channel,
+    ``diff_c = a_c + b_c . (p - c)``, and the point where every channel equals its reference
+    darkened by a common factor k, ``a_c + b_c . dp = -k ref_c`` (least squares in dp and k,
+    k = 0 with fewer than three channels). Returns ``(centres (N, 2) px, at_apex (N,) bool)``;
+    a blob whose ring is not at least twice as changed as its centre, or whose iterations leave
+    the disc, keeps its first estimate (at_apex False).
+    """
+    d = np.asarray(diff, np.float32)
+    centres = np.asarray(centres_px, np.float64).reshape(-1, 2)
+    out, at_apex = centres.copy(), np.zeros(len(centres), bool)
+    if len(centres) < 2 or d.ndim != 3:
+        return out, at_apex
+    h, w, n_ch = d.shape
+    smooth = np.stack([cv2.GaussianBlur(d[..., c], (0, 0), 1.0) for c in range(n_ch)], -1)
+    mag = np.linalg.norm(np.stack([cv2.GaussianBlur(d[..., c], (0, 0), 1.5)
+                                   for c in range(n_ch)], -1), axis=-1)
+    usable = np.ones(d.shape, bool)
+    for img in (raw_frame, raw_reference):
+        if img is not None:
+            usable &= (img > CLIP_LOW) & (img < CLIP_HIGH)
+    ref = (np.asarray(raw_reference, np.float32) if raw_reference is not None
+           else np.zeros(d.shape, np.float32))
+    pitch = cKDTree(centres).query(centres, 2)[0][:, 1]
+    radius = DOT_RADIUS_PER_PITCH * pitch
+    # ring contrast: mean change magnitude on a circle of 0.6 r minus the change at the pixel
+    ring_r = 0.6 * float(np.median(radius))
+    k = int(np.ceil(ring_r)) + 1
+    yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+    ring = (np.abs(np.hypot(xx, yy) - ring_r) < 0.5).astype(np.float32)
+    contrast = cv2.filter2D(mag, -1, ring / ring.sum(), borderType=cv2.BORDER_REPLICATE) - mag
+    for i, (c0, r) in enumerate(zip(centres, radius)):
+        start = _ring_centre(contrast, mag, c0, 0.8 * r)
+        if start is None:
+            continue
+        c = _apex_iterations(smooth, usable, ref, start, fit_fraction * r, iterations)
+        if c is not None and np.hypot(*(c - start)) <= 0.5 * r:
+            out[i], at_apex[i] = c, True
+    return out, at_apex
+
+
+def _ring_centre(contrast, mag, c0, reach):
+    """The pixel within ``reach`` of ``c0`` with the highest ring contrast, or None when its
+    ring is not at least twice as changed as the pixel itself."""
+    h, w = mag.shape
+    u0, v0 = int(round(c0[0])), int(round(c0[1]))
+    k = int(np.ceil(reach))
+    v_lo, v_hi, u_lo, u_hi = max(v0 - k, 0), min(v0 + k + 1, h), max(u0 - k, 0), min(u0 + k + 1, w)
+    if v_lo >= v_hi or u_lo >= u_hi:
+        return None
+    vv, uu = np.mgrid[v_lo:v_hi, u_lo:u_hi]
+    win = np.where(np.hypot(uu - c0[0], vv - c0[1]) <= reach, contrast[v_lo:v_hi, u_lo:u_hi],
+                   -np.inf)
+    j = np.unravel_index(int(np.argmax(win)), win.shape)
+    v, u = v_lo + j[0], u_lo + j[1]
+    if not contrast[v, u] >= mag[v, u]:          # ring mean >= 2 x the centre's change
+        return None
+    return np.array([u, v], np.float64)
+
+
+def _apex_iterations(smooth, usable, ref, start, fit_radius, iterations):
+    """Newton-like steps to where the channels' planes meet (see :func:`refine_to_apex`);
+    None when fewer than two channels are usable or a step leaves the image."""
+    h, w, n_ch = smooth.shape
+    c = np.array(start, np.float64)
+    rho = max(float(fit_radius), 2.0)
+    k = int(np.ceil(rho)) + 1
+    for _ in range(iterations):
+        u0, v0 = int(round(c[0])), int(round(c[1]))
+        vv, uu = np.mgrid[v0 - k:v0 + k + 1, u0 - k:u0 + k + 1]
+        inside = ((np.hypot(uu - c[0], vv - c[1]) <= rho) & (uu >= 0) & (vv >= 0)
+                  & (uu < w) & (vv < h))
+        uu, vv = uu[inside], vv[inside]
+        if len(uu) < 6:
+            return None
+        rows, rhs = [], []
+        for ch in range(n_ch):
+            ok = usable[vv, uu, ch]
+            if ok.sum() < 0.6 * len(ok):
+                continue
+            a = np.stack([np.ones(int(ok.sum())), uu[ok] - c[0], vv[ok] - c[1]], 1)
+            coef = np.linalg.lstsq(a, smooth[vv[ok], uu[ok], ch], rcond=None)[0]
+            rows.append([coef[1], coef[2], ref[v0, u0, ch]])
+            rhs.append(-coef[0])
+        if len(rows) < 2:
+            return None
+        m, b = np.asarray(rows), np.asarray(rhs)
+        if len(rows) < 3 or not np.any(m[:, 2]):
+            m = m[:, :2]
+        step = np.linalg.lstsq(m, b, rcond=None)[0][:2]
+        if not np.all(np.isfinite(step)):
+            return None
+        c = c + step
+        if not (0 <= c[0] < w and 0 <= c[1] < h):
+            return None
+        if np.hypot(*step) < 0.01:
+            break
+    return c
 
 
 def _axis_direction(axis_of_u: str, axis_of_v: str, sensor_axis: int) -> np.ndarray:
@@ -261,6 +401,7 @@ def calibrate_dots(
     focal_px: float | None = None,
     free_lens: tuple[str, ...] = ("cx", "cy", "k1", "k2", "p1", "p2"),
     blur_sigma_px: float = 2.5,
+    refine: bool = True,
     grid: OutputGrid | None = None,
     name: str = "pressed frame",
 ) -> tuple[PlaneFit, DotDetections]:
@@ -269,7 +410,8 @@ def calibrate_dots(
     frames : one (H, W[, C]) frame or a sequence of frames of the same press, raw camera pixels.
     reference : the unpressed gel, same shape (None if ``frames`` are already subtracted).
     pitch_mm : lattice pitch, mm. grid_shape : (columns, rows), checked when given.
-    Returns the fit and the detections.
+    refine : fit the pins' apexes (:func:`refine_to_apex`, the default) rather than the blobs'
+    centroids. Returns the fit and the detections.
     """
     if not pitch_mm > 0:
         raise ValueError(f"pitch_mm must be positive, got {pitch_mm}")
@@ -283,7 +425,7 @@ def calibrate_dots(
         if f.shape != shape:
             raise ValueError(f"{name} {i} has shape {f.shape}, the first has {shape}")
     frame = stack[0] if len(stack) == 1 else np.mean([f.astype(np.float32) for f in stack], axis=0)
-    det = detect_dots(frame, reference, blur_sigma_px=blur_sigma_px, name=name)
+    det = detect_dots(frame, reference, blur_sigma_px=blur_sigma_px, refine=refine, name=name)
     hint = ("check that the reference frame shows the unpressed gel and the other frames the "
             "pressed grid, that the press is deep enough to see, and try --blur-px near half a "
             "dot's radius in pixels")
