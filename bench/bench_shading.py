@@ -233,10 +233,11 @@ def markdown(presses, comp, folds: int, timings: dict) -> str:
 
 # ----------------------------------------------------------------------- virtual presses
 #: Wizard settings of the virtual-sensor comparison (24 presses; the FEM step at one nu, for
-#: the rig's zero offset that calibrates the learned read-out's depth gain).
+#: the rig's zero offset that calibrates the learned read-out's depth gain; 800 steps for the
+#: fine-tuned read-out's row, an option: the wizard's default is 0).
 VIRTUAL_WIZARD = {"description": "bench", "reference": {"n_frames": 6}, "camera": {"n_frames": 1},
                   "presses": {"n_presses": 24}, "shading": {"folds": 0, "ring_targets": "none"},
-                  "fem": {"nu_grid": [0.48], "bootstrap": 0},
+                  "fem": {"nu_grid": [0.48], "bootstrap": 0}, "readout_steps": 800,
                   "rig": {"approach_step_mm": 0.2, "approach_clearance_mm": 0.4}}
 VIRTUAL_SENSOR = "gelslim2"
 #: Floor of the oracle weights 1 / (gradient error^2 + floor^2), mm per mm (0.005-0.01 is best).
@@ -415,7 +416,7 @@ VIRTUAL_NAMES = {
     "fem": "targets around the contact from the FEM of the pad, image-mean fallback, 32 bins "
            "(before)",
     "fem, colour prior": "the same targets, colour-polynomial fallback, {bins} bins (the "
-                         "wizard's default now)",
+                         "wizard's shading model)",
     "fem, colour prior, exact camera": "the same, presses rectified by the virtual camera's own "
                                        "mapping instead of the fitted one",
     "oracle weights": "the wizard's default model, its gradients integrated with a weight per "
@@ -426,9 +427,11 @@ VIRTUAL_NAMES = {
                         "units of gelslim1's design, never on this unit), "
                         "with the wizard's camera mapping, reference frame and depth gain "
                         "({readout_gain:.3f}, from its presses and the rig's zero offset "
-                        "{rig_offset_um:.1f} um)",
+                        "{rig_offset_um:.1f} um): the wizard's default with a `readout`, and "
+                        "how the shipped plugins read frames",
     "learned read-out, fine-tuned": "the same read-out fine-tuned on this unit by the wizard "
-                                    "(`readout_steps` {readout_steps}: {readout_finetune}), "
+                                    "(an option, `readout_steps` {readout_steps}: "
+                                    "{readout_finetune}), "
                                     "depth gain {finetuned_gain:.3f}",
     "true gradients": "reference: the true gradients integrated (zero border)"}
 #: The learned read-out of the virtual sensor's design (training/shading_net).

@@ -4,9 +4,9 @@ virtual sensors of the same names, plus a demo clip.
     python plugins/build_shipped.py [--only gelslim2] [--model exported/gelslim_mesh.onnx]
                                     [--overwrite] [--work DIR]
     python plugins/build_shipped.py --relink-model     # after the family model is re-exported
-    python plugins/build_shipped.py --readout          # plugins that read frames with the
-                                                       # learned read-out, fine-tuned on each
-                                                       # unit's presses (not the shipped ones)
+    python plugins/build_shipped.py --shading-model    # plugins that read frames with the
+                                                       # shading model instead of the learned
+                                                       # read-out (faster, less accurate)
 
 Each plugin is made by ``tactile-deploy calibrate`` (:func:`calibration.wizard.wizard.run_wizard`,
 docs/calibration.md), run non-interactively with the committed config ``plugins/wizard/NAME.json``
@@ -20,6 +20,10 @@ as it calibrates a real sensor on a rig:
   GelSlim cameras);
 * **shading model**: fitted on 80 ball presses (3 mm ball, 0.3-0.9 mm deep) over the view,
   cross-validated;
+* **learned read-out**: the GelSlim design's network (``exported/gelslim_readout.onnx``, the
+  configs' ``readout``; not fine-tuned: ``readout_steps`` 0) reads the frames, with the unit's
+  depth gain from the rig's presses; the shading model stays in the plugin (``--shading-model``
+  builds plugins that read frames with it);
 * **material**: E from the rig's forces (nu fixed at 0.48), with the rig's depth zero error;
 * **model**: the family's ONNX model (``--model``), referenced by relative path and sha256
   (``copy_model: false``: one copy in ``exported/`` for every shipped plugin); the topology file
@@ -63,7 +67,6 @@ sys.path.insert(0, str(ROOT))
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_MODEL = ROOT / "exported" / "gelslim_mesh.onnx"
-DEFAULT_READOUT = ROOT / "exported" / "gelslim_readout.onnx"
 #: The wizard config of each shipped plugin.
 WIZARD_CONFIGS = HERE / "wizard"
 BALL_RADIUS_MM = 3.0
@@ -196,16 +199,18 @@ def demo_frames(sensor, move: DemoMove, seed: int, n: int = N_DEMO):
 
 # ------------------------------------------------------------------------------------ build
 def run_wizard_on_virtual(name: str, out: Path, work: Path, model: Path,
-                          readout: Path | None = None) -> None:
+                          readout: Path | None = None, shading_only: bool = False) -> None:
     """``tactile-deploy calibrate --sensor NAME --source virtual:NAME --rig simulated --yes
     --config plugins/wizard/NAME.json --out OUT --work WORK --model MODEL --overwrite``, the
-    config's ``readout`` set to ``readout`` when given."""
+    config's ``readout`` set to ``readout`` when given, or removed with ``shading_only``."""
     from calibration.wizard.config import load_wizard_config
     from calibration.wizard.ui import AutoUI
     from calibration.wizard.wizard import EXIT_OK, run_wizard
 
     config = load_wizard_config(WIZARD_CONFIGS / f"{name}.json")
-    if readout is not None:   # recorded relative to the checkout (the wizard runs from there)
+    if shading_only:
+        config = config.model_copy(update={"readout": None})
+    elif readout is not None:   # recorded relative to the checkout (the wizard runs from there)
         config = config.model_copy(update={"readout": Path(os.path.relpath(readout, ROOT)).as_posix()})
     with contextlib.chdir(ROOT):
         code = run_wizard(name, source=f"virtual:{name}", rig="simulated", gauge=None,
@@ -269,8 +274,9 @@ def compact_report_pictures(folder: Path) -> None:
 
 
 def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | None = None,
-          readout: Path | None = None) -> dict:
-    """Make the shipped plugin ``name`` in ``folder`` (see the module docstring)."""
+          readout: Path | None = None, shading_only: bool = False) -> dict:
+    """Make the shipped plugin ``name`` in ``folder`` (see the module docstring); ``readout``
+    replaces the config's learned read-out, ``shading_only`` drops it."""
     from tactile_deploy.atomic import replace_folder
     from tactile_deploy.runtime.plugins import (
         MANIFEST_NAME,
@@ -291,7 +297,8 @@ def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | No
     if staging.exists():
         shutil.rmtree(staging)
     with tempfile.TemporaryDirectory(prefix=f"{name}-calibration-") as tmp:
-        run_wizard_on_virtual(name, staging, work or Path(tmp) / "work", model, readout)
+        run_wizard_on_virtual(name, staging, work or Path(tmp) / "work", model, readout,
+                              shading_only)
     try:
         plugin = SensorPlugin.load(staging)
         sensor = load_sensor(name)
@@ -370,10 +377,12 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace existing plugins")
     ap.add_argument("--work", type=Path, help="keep the wizard's work folders here "
                     "(WORK/NAME.calibration; default: a temporary folder)")
-    ap.add_argument("--readout", type=Path, nargs="?", const=DEFAULT_READOUT, default=None,
-                    help="give the plugins the design's learned read-out (default file: "
-                    "exported/gelslim_readout.onnx; without the option the shading model reads "
-                    "frames, as in the shipped plugins)")
+    ap.add_argument("--readout", type=Path, default=None,
+                    help="another learned read-out file than the configs' "
+                    "(exported/gelslim_readout.onnx)")
+    ap.add_argument("--shading-model", action="store_true",
+                    help="read frames with the shading model (no learned read-out): faster, "
+                    "less accurate (docs/shading.md)")
     ap.add_argument("--relink-model", action="store_true",
                     help="only point existing plugins at --model (after a re-export)")
     args = ap.parse_args(argv)
@@ -386,7 +395,8 @@ def main(argv=None) -> int:
         if readout is not None and not readout.is_file():
             raise SystemExit(f"the learned read-out {readout} does not exist: train it "
                              "(python -m training.shading_net)")
-        info = build(name, args.out / name, args.model.resolve(), args.overwrite, work, readout)
+        info = build(name, args.out / name, args.model.resolve(), args.overwrite, work, readout,
+                     args.shading_model)
         print(json.dumps(info, indent=2))
     return 0
 

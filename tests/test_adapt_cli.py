@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -33,14 +32,9 @@ def plugin_copy(tmp_path):
     if not (STEP / "card.json").is_file():
         pytest.fail(f"{STEP} is missing: export it with `python -m training export-adapt --bundle MODEL.pt` "
                     "for the committed exported/gelslim_mesh.onnx")
-    folder = tmp_path / "gelslim2"
-    shutil.copytree(ROOT / "plugins" / "gelslim2", folder, ignore=shutil.ignore_patterns("adapted"))
-    sys.path.insert(0, str(ROOT / "plugins"))
-    try:
-        from build_shipped import relink_model
-    finally:
-        sys.path.remove(str(ROOT / "plugins"))
-    relink_model(folder, ROOT / "exported" / "gelslim_mesh.onnx")
+    from tactile_deploy.runtime.plugins import copy_plugin
+
+    folder = copy_plugin(ROOT / "plugins" / "gelslim2", tmp_path / "gelslim2")
     return folder
 
 

@@ -165,8 +165,9 @@ def tiny_plugin(tiny, tmp_path):
     """A copy of the shipped gelslim2 plugin whose family model is the tiny one."""
     import sys
 
-    folder = tmp_path / "gelslim2"
-    shutil.copytree(ROOT / "plugins" / "gelslim2", folder, ignore=shutil.ignore_patterns("adapted"))
+    from tactile_deploy.runtime.plugins import copy_plugin
+
+    folder = copy_plugin(ROOT / "plugins" / "gelslim2", tmp_path / "gelslim2")
     sys.path.insert(0, str(ROOT / "plugins"))
     try:
         from build_shipped import relink_model

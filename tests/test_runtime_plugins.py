@@ -294,3 +294,35 @@ def test_crop_camera_mapping_copies_pixels():
     assert out.shape == (20, 16, 3) and np.array_equal(out, img[6:26, 4:20])
     assert not cam.image_mirrored and abs(cam.mm_per_px_x - 0.05) < 1e-9
     assert "testsensor" not in sys.modules
+
+
+def test_copy_keeps_the_shared_files_and_never_overwrites(tmp_path):
+    """The shipped plugins name the family model and the read-out in exported/ by relative
+    path: a plain folder copy loses them, ``plugins copy`` keeps them (absolute paths)."""
+    from tactile_deploy.runtime.plugins import copy_plugin
+
+    src = Path(__file__).resolve().parent.parent / "plugins" / "gelslim2"
+    plain = tmp_path / "plain"
+    shutil.copytree(src, plain, ignore=shutil.ignore_patterns("adapted"))
+    assert not validate_plugin(plain, check_model=False).ok       # what the command fixes
+
+    out = copy_plugin(src, tmp_path / "mine")
+    assert validate_plugin(out).ok
+    original, copy = SensorPlugin.load(src), SensorPlugin.load(out)
+    for key in original.manifest.files():
+        assert copy.path_of(key).resolve() == (original.path_of(key).resolve()
+                                               if key in ("model", "readout") else
+                                               (out / Path(original.manifest.files()[key].path)).resolve())
+    assert Path(copy.manifest.model.path).is_absolute()
+    assert not Path(copy.manifest.shading.path).is_absolute()
+    assert not (out / "adapted").exists()
+
+    before = (out / "plugin.json").read_text()
+    with pytest.raises(PluginError, match="exists; choose a new folder"):
+        copy_plugin(src, out)
+    assert (out / "plugin.json").read_text() == before
+    res = runner.invoke(app, ["plugins", "copy", "gelslim2", str(tmp_path / "cli")])
+    assert res.exit_code == 0, res.output
+    assert validate_plugin(tmp_path / "cli", check_model=False).ok
+    res = runner.invoke(app, ["plugins", "copy", "gelslim2", str(tmp_path / "cli")])
+    assert res.exit_code != 0 and "exists" in res.output

@@ -211,11 +211,14 @@ class WizardConfig(BaseModel):
                                 "(None: the shading model); a relative path is relative to the "
                                 "current folder. The noise reference is made with it, and its "
                                 "depth gain on this unit is calibrated from the rig's presses.")
-    readout_steps: int = Field(800, ge=0, le=100_000, description="Adam steps of fine-tuning the "
+    readout_steps: int = Field(0, ge=0, le=100_000, description="Adam steps of fine-tuning the "
                                "read-out on this unit's ball presses (their FEM depth at the "
                                "rig's intrusion plus its fitted zero offset) and no-contact "
                                "frames, written into the plugin as readout.onnx; needs torch "
-                               "(the train extra). 0: the design's read-out as it is.")
+                               "(the train extra). 0 (default): the design's read-out as it is, "
+                               "with the unit's depth gain (docs/shading.md: with a good camera "
+                               "mapping, fine-tuning on FEM targets is worse on the virtual "
+                               "GelSlim 2).")
     rig_config: str | None = Field(None, description="Rig config JSON (docs/rig.md): stage frame, "
                                    "limits, force limit. Ports from --rig/--gauge override it.")
     rig: RigSettings = Field(default_factory=RigSettings)

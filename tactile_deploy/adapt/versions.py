@@ -78,9 +78,10 @@ def check_writable(plugin) -> None:
     probe = root if root.is_dir() else folder
     if not os.access(probe, os.W_OK):
         raise PermissionError(
-            f"cannot write adapted versions into {probe} (read-only); copy the plugin folder to a writable "
-            f"place and put that place on $TACTILE_DEPLOY_PLUGIN_PATH (it then shadows this one), or pass "
-            "--dry-run to measure only")
+            f"cannot write adapted versions into {probe} (read-only); copy the plugin to a writable "
+            f"place (`tactile-deploy plugins copy {plugin.name} DEST`) and put DEST's parent folder on "
+            "$TACTILE_DEPLOY_PLUGIN_PATH (the copy then shadows this one), or pass --dry-run to "
+            "measure only")
 
 
 def active_version(folder: str | Path) -> VersionRecord | None:

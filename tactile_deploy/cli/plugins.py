@@ -1,4 +1,4 @@
-"""``tactile-deploy plugins list | show NAME | validate PATH | schema``."""
+"""``tactile-deploy plugins list | show NAME | validate PATH | copy NAME DEST | schema``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import typer
 
 from tactile_deploy.cli.common import console, fail
 
-plugins_app = typer.Typer(help="Sensor plugins: list, show, validate.", no_args_is_help=True)
+plugins_app = typer.Typer(help="Sensor plugins: list, show, validate, copy.", no_args_is_help=True)
 
 
 @plugins_app.command("list")
@@ -93,6 +93,25 @@ def plugins_validate(
     if not report.ok:
         fail(f"plugin {path} has {len(report.problems)} problem(s)", code=1)
     console.print(f"[green]plugin {report.manifest.name} is valid[/]")
+
+
+@plugins_app.command("copy")
+def plugins_copy(
+    name: str = typer.Argument(..., help="Plugin name or folder."),
+    dest: Path = typer.Argument(..., help="New folder for the copy (must not exist)."),
+    with_adapted: bool = typer.Option(False, "--with-adapted",
+                                      help="Also copy the adapted model versions."),
+) -> None:
+    """Copy a plugin to a folder of your own (e.g. a writable one to adapt it), keeping the files
+    it shares with other plugins (the family model) where they are."""
+    from tactile_deploy.runtime.plugins import PluginError, copy_plugin
+
+    try:
+        out = copy_plugin(name, dest, with_adapted)
+    except (PluginError, OSError) as e:
+        fail(str(e))
+    console.print(f"copied plugin {name} to {out}; put {out.parent} on "
+                  "$TACTILE_DEPLOY_PLUGIN_PATH to use it by name (it then shadows the original)")
 
 
 @plugins_app.command("schema")

@@ -22,6 +22,7 @@ data, and loading it never runs code from it.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -650,6 +651,53 @@ def write_plugin(folder: str | os.PathLike, manifest_fields: dict, files: dict[s
     manifest = PluginManifest.model_validate(fields)
     write_json(target, manifest.model_dump(mode="json"))
     return manifest
+
+
+def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
+                with_adapted: bool = False) -> Path:
+    """Copy a plugin folder to ``dest`` (which must not exist) so that the copy works there.
+
+    Files the manifest names outside the plugin folder (the shipped plugins share the family
+    model and the learned read-out in ``exported/``) are recorded by absolute path in the copy's
+    ``plugin.json``; files inside are copied with the folder. The adapted versions
+    (``adapted/``) are left behind unless ``with_adapted``. The copy is assembled beside ``dest``
+    and renamed into place only after it validates (checksums, shapes; not the model's
+    contract). Returns ``dest`` as an absolute path.
+    """
+    import shutil
+
+    from tactile_deploy.atomic import write_json
+
+    plugin = SensorPlugin.load(name_or_path)
+    dest = Path(dest).expanduser().absolute()
+    if dest.exists():
+        raise PluginError(f"cannot copy plugin {plugin.name!r} to {dest}: it exists; choose a new "
+                          "folder (nothing there is overwritten)")
+    if not dest.parent.is_dir():
+        raise PluginError(f"cannot copy plugin {plugin.name!r} to {dest}: folder {dest.parent} "
+                          "does not exist")
+    source = plugin.folder.resolve()
+    doc = json.loads((plugin.folder / MANIFEST_NAME).read_text(encoding="utf-8"))
+    for key in plugin.manifest.files():
+        path = plugin.path_of(key)
+        if not path.resolve().is_relative_to(source):
+            doc[key]["path"] = path.resolve().as_posix()
+    staging = dest.parent / f".{dest.name}.copy-{os.getpid()}"
+    if staging.exists():
+        shutil.rmtree(staging)
+    ignore = None if with_adapted else shutil.ignore_patterns("adapted")
+    shutil.copytree(plugin.folder, staging, ignore=ignore)
+    try:
+        write_json(staging / MANIFEST_NAME, PluginManifest.model_validate(doc).model_dump(mode="json"))
+        report = validate_plugin(staging, check_model=False)
+        if not report.ok:
+            raise PluginError(f"the copy of plugin {plugin.name!r} does not validate: "
+                              + "; ".join(report.problems))
+        os.replace(staging, dest)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return dest
 
 
 def crop_camera_mapping(image_width_px: int, image_height_px: int, mm_per_px: float,
