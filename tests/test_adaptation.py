@@ -178,7 +178,12 @@ def tiny_plugin(tiny, tmp_path):
 
 
 def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
-    from tactile_deploy.adapt.versions import add_version, load_history, rollback, staging_folder
+    from tactile_deploy.adapt.versions import (
+        add_version,
+        load_history,
+        rollback,
+        staging_folder,
+    )
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
     plugin = SensorPlugin.load(tiny_plugin)

@@ -401,7 +401,10 @@ def test_plugin_step_with_the_learned_readout(wizard_run):
     flat = pipe.frame_to_depth(sensor.renderer.reference_frame(np.random.default_rng(9)))
     assert np.abs(flat).max() < 0.02, np.abs(flat).max()
     # new presses the wizard never saw, against the surface their frames were shaded from
-    from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
+    from calibration.shading.virtual_check import (
+        near_contact_errors,
+        virtual_ball_presses,
+    )
 
     presses = virtual_ball_presses(sensor, m.camera.grid, n_inside=8, n_edge=0, seed=31)
     e = near_contact_errors([pipe.frame_to_depth(f) for f in presses.frames], presses)
@@ -418,7 +421,10 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     the design's network as it is: docs/shading.md says why; the wizard's default is 0 steps.)"""
     import hashlib
 
-    from calibration.shading.virtual_check import near_contact_errors, virtual_ball_presses
+    from calibration.shading.virtual_check import (
+        near_contact_errors,
+        virtual_ball_presses,
+    )
     from tactile_deploy.imaging.learned_readout import LearnedReadout
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin

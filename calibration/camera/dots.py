@@ -173,7 +173,7 @@ def refine_to_apex(diff: np.ndarray, centres_px: np.ndarray, *, raw_frame: np.nd
     out, at_apex = centres.copy(), np.zeros(len(centres), bool)
     if len(centres) < 2 or d.ndim != 3:
         return out, at_apex
-    h, w, n_ch = d.shape
+    n_ch = d.shape[2]
     smooth = np.stack([cv2.GaussianBlur(d[..., c], (0, 0), 1.0) for c in range(n_ch)], -1)
     mag = np.linalg.norm(np.stack([cv2.GaussianBlur(d[..., c], (0, 0), 1.5)
                                    for c in range(n_ch)], -1), axis=-1)
