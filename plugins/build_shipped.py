@@ -382,12 +382,13 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace existing plugins")
     ap.add_argument("--work", type=Path, help="keep the wizard's work folders here "
                     "(WORK/NAME.calibration; default: a temporary folder)")
-    ap.add_argument("--readout", type=Path, default=None,
-                    help="another learned read-out file than the configs' "
-                    "(exported/gelslim_readout.onnx)")
-    ap.add_argument("--shading-model", action="store_true",
-                    help="read frames with the shading model (no learned read-out): faster, "
-                    "less accurate (docs/shading.md)")
+    read = ap.add_mutually_exclusive_group()
+    read.add_argument("--readout", type=Path, default=None,
+                      help="another learned read-out file than the configs' "
+                      "(exported/gelslim_readout.onnx)")
+    read.add_argument("--shading-model", action="store_true",
+                      help="read frames with the shading model (no learned read-out): faster, "
+                      "less accurate (docs/shading.md)")
     ap.add_argument("--relink-model", action="store_true",
                     help="only point existing plugins at --model (after a re-export)")
     args = ap.parse_args(argv)

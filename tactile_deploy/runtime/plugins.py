@@ -26,6 +26,7 @@ import json
 import logging
 import math
 import os
+import shutil
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib.metadata import entry_points
@@ -664,8 +665,6 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
     and renamed into place only after it validates (checksums, shapes; not the model's
     contract). Returns ``dest`` as an absolute path.
     """
-    import shutil
-
     from tactile_deploy.atomic import write_json
 
     plugin = SensorPlugin.load(name_or_path)
@@ -679,9 +678,9 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
     source = plugin.folder.resolve()
     doc = json.loads((plugin.folder / MANIFEST_NAME).read_text(encoding="utf-8"))
     for key in plugin.manifest.files():
-        path = plugin.path_of(key)
-        if not path.resolve().is_relative_to(source):
-            doc[key]["path"] = path.resolve().as_posix()
+        path = plugin.path_of(key).resolve()
+        if not path.is_relative_to(source):
+            doc[key]["path"] = path.as_posix()
     staging = dest.parent / f".{dest.name}.copy-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)
