@@ -153,7 +153,7 @@ def main(argv=None) -> int:
         export_s[v] = time.perf_counter() - t0
         sizes[v] = sum(p.stat().st_size for p in tmp.glob(f"{v}.onnx*")) / 2**20
         sessions[v] = make_session(path, threads=1)
-        print(f"exported {v} ({export_s[v]:.0f} s, {sizes[v]:.1f} MB)", file=sys.stderr)
+        print(f"exported {v} ({export_s[v]:.0f} s, {sizes[v]:.1f} MiB)", file=sys.stderr)
 
     # torch eager baselines: the trained modules (sparse products, no folding), fp32, no grad
     scale_mask = model.norm.displacement_scale_mm * model.norm.free_mask
@@ -244,7 +244,7 @@ def main(argv=None) -> int:
         f"{rounds} interleaved rounds, {k} held-out maps; target p50 <= {TARGET_P50_MS} ms.",
         "",
         "| variant | decoder | precision | p50 ms (batch 1) | p95 ms | ms/mesh (batch 8) | vs torch eager | vs naive "
-        "| vertex RMSE mm | rel. error | max error mm | max diff vs torch mm | OOD AUROC | file MB |",
+        "| vertex RMSE mm | rel. error | max error mm | max diff vs torch mm | OOD AUROC | file MiB |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

@@ -412,9 +412,8 @@ def camera_position_error_mm(fitted, true) -> dict:
 
 
 VIRTUAL_NAMES = {
-    "none": "no targets around the contact, image-mean fallback, 32 bins (the first wizard)",
-    "fem": "targets around the contact from the FEM of the pad, image-mean fallback, 32 bins "
-           "(before)",
+    "none": "no targets around the contact, image-mean fallback, 32 bins",
+    "fem": "targets around the contact from the FEM of the pad, image-mean fallback, 32 bins",
     "fem, colour prior": "the same targets, colour-polynomial fallback, {bins} bins (the "
                          "wizard's shading model)",
     "fem, colour prior, exact camera": "the same, presses rectified by the virtual camera's own "

@@ -157,7 +157,7 @@ def render_markdown(card: dict) -> str:
         "",
         "## Files",
         "",
-        f"- `{card['files']['onnx']}` ({card['files']['onnx_mb']} MB, sha256 `{card['files']['onnx_sha256'][:16]}...`)",
+        f"- `{card['files']['onnx']}` ({card['files']['onnx_mb']} MiB, sha256 `{card['files']['onnx_sha256'][:16]}...`)",
         f"- `{card['files']['reference_fp32']}`: fp32 graph of the same weights",
         "",
         "## Held-out accuracy (shipped graph, mm)",
