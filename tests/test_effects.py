@@ -402,15 +402,16 @@ def test_poisson_drift_solves_the_pad_at_the_drifted_ratio(coarse_sim):
     lin = sim.solve_intrusion(delta)
     drifted = PoissonDrift(delta_nu=-0.03).correct_contact(sim, delta, lin)
     ref = ContactSimulator(mesh, sim.material.model_copy(update={"nu": 0.45}), use_cache=False)
-    np.testing.assert_allclose(drifted.displacements_mm, ref.solve(BALL, pose).displacements_mm,
-                               atol=1e-9)
+    ref_contact = ref.solve(BALL, pose)
+    np.testing.assert_allclose(drifted.displacements_mm, ref_contact.displacements_mm, atol=1e-9)
+    assert drifted.force_n == pytest.approx(ref_contact.force_n, rel=1e-6)
     # A softer bulk: the surface just outside the contact sinks further, the force drops.
     xy = mesh.vertices[: mesh.n_plane, :2]
     r = np.hypot(xy[:, 0] - 0.5, xy[:, 1])
     ring = (r > 2.5) & (r < 4.5)
     duz = drifted.displacements_mm[: mesh.n_plane, 2] - lin.displacements_mm[: mesh.n_plane, 2]
     assert duz[ring].mean() < -1e-3
-    assert drifted.force_n == pytest.approx(lin.force_n * (1 - 0.13), rel=0.05)
+    assert drifted.force_n < 0.95 * lin.force_n
     with pytest.raises(ValueError, match="outside"):
         PoissonDrift(delta_nu=0.03).correct_contact(sim, delta, lin)
 

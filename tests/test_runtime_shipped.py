@@ -2,12 +2,10 @@
 their committed configs, valid, small, their demo clips run through the README's main command,
 and new frames of the virtual sensors they were made from come out at the true depth.
 
-Depth accuracy on virtual frames: the whole-frame RMSE meets the shading calibration's tolerance
-(20 um). Near the contact the error is larger than that tolerance (the bounds below are the
-measured ones with a margin; docs/calibration.md, "What does not hold yet", has the measured
-causes: slopes read from saturated colours on flanks facing the nearest LED, the LEDs'
-depth-dependent light, the virtual sensor's own surface lying up to ~30 um below the ball inside
-the contact). The real ball presses (tests/test_runtime_pipeline.py) meet the tolerance.
+Depth accuracy on virtual frames: the plugins read frames with the GelSlim design's learned
+read-out; new ball presses come out within the calibration's 20 um near the contact (mean over
+presses) and a few um over the whole frame (docs/shading.md, "Learned read-out"). The real ball
+presses (tests/test_runtime_pipeline.py) meet the calibration's shape targets.
 """
 
 from __future__ import annotations
@@ -26,9 +24,15 @@ from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = ("gelslim1", "gelslim2")
-WHOLE_RMSE_UM = 20.0          # the shading calibration's tolerance (whole frame)
-NEAR_RMSE_UM = 90.0           # measured worst 47-49 um here, 61-82 um on the 16 presses of
-PEAK_UM = 110.0               # the provenance (peak: 29-70 um here, 88-127 um there)
+# The shipped plugins read frames with the design's learned read-out. The calibration's depth
+# target is 20 um RMS near the contact (mean over presses); single presses and the peak get the
+# spread the manifests' provenance measured on 16 held-out presses (near <= 24.4 um, peak
+# <= 40 um, whole frame <= 4.0 um) with a margin. Measured here: near 13.5 / 15.0 um mean,
+# 16.5 / 16.3 um worst, peak 18 / 27 um, whole frame 3.5 / 4.0 um (gelslim1 / gelslim2).
+NEAR_RMSE_MEAN_UM = 20.0
+NEAR_RMSE_UM = 30.0
+PEAK_UM = 50.0
+WHOLE_RMSE_UM = 8.0
 
 
 def _folder(name: str) -> Path:
@@ -72,10 +76,10 @@ def test_shipped_plugin_was_made_by_the_wizard_from_its_config(name):
 
 
 @pytest.mark.parametrize("name", SHIPPED)
-def test_virtual_frames_come_out_at_the_true_depth(name, pad_sim):
+def test_virtual_frames_come_out_at_the_true_depth(name, pad_sim, monkeypatch):
     """Four new ball presses (places and noise the plugin never saw) of the virtual sensor:
     the plugin's pipeline against the sensor's true surface on the model grid."""
-    sys.path.insert(0, str(ROOT / "plugins"))
+    monkeypatch.syspath_prepend(str(ROOT / "plugins"))
     import build_shipped
 
     from tactile_deploy.runtime.pipeline import ImagingPipeline
@@ -93,6 +97,7 @@ def test_virtual_frames_come_out_at_the_true_depth(name, pad_sim):
     err = build_shipped.depth_errors_um(depths, truths, centres, circles[:, 2] * grid.pitch_x_mm)
     print(f"\n{name}: {err}")
     assert err["whole_rmse_um_worst"] <= WHOLE_RMSE_UM
+    assert err["near_rmse_um_mean"] <= NEAR_RMSE_MEAN_UM
     assert err["near_rmse_um_worst"] <= NEAR_RMSE_UM
     assert err["peak_error_um_worst"] <= PEAK_UM
     for d, t in zip(depths, truths):          # the press is where it is

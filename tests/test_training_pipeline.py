@@ -99,6 +99,7 @@ def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
     """Two ranks under torchrun (gloo on CPU), each simulating its own contacts: the ranks stop a
     time-budgeted stage together, run the finetune stage, and rank 0 alone writes the bundle."""
     import os
+    import socket
     import subprocess
     import sys
 
@@ -124,8 +125,11 @@ def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
     path = tmp_path / "ddp.json"
     path.write_text(json.dumps(cfg))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    with socket.socket() as s:                    # a free port: other runs may hold a fixed one
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
     proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(port),
          "-m", "training", "train", "--config", str(path)],
         capture_output=True, text=True, timeout=600, env=env,
     )

@@ -64,6 +64,22 @@ def wizard_run(tmp_path_factory, sensor):
     return folder, out, cfg, res.output
 
 
+@pytest.fixture
+def wizard_copy(wizard_run, tmp_path):
+    """A copy of the wizard run's folder (config, work folder, plugin) for tests that redo
+    steps: the module's run stays as the wizard wrote it, whatever order the tests run in."""
+    import shutil
+
+    folder, out, cfg, output = wizard_run
+    copy = tmp_path / folder.name
+    shutil.copytree(folder, copy)
+    out_copy = copy / out.relative_to(folder)
+    state = copy / f"{out.name}.calibration" / "state.json"   # the plugin it wrote is the copy
+    state.write_text(json.dumps({**json.loads(state.read_text()),
+                                 "plugin_written": str(out_copy.resolve())}))
+    return copy, out_copy, copy / cfg.relative_to(folder), output
+
+
 def test_plugin_is_loaded_by_the_runtime(wizard_run):
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
@@ -158,13 +174,13 @@ def test_camera_mapping_and_material_match_the_planted_sensor(wizard_run, sensor
     assert fem["depth_offset_mm"] == pytest.approx(planted_offset, abs=0.01)
 
 
-def test_redo_resume_and_config_checks(wizard_run):
+def test_redo_resume_and_config_checks(wizard_copy):
     """--redo reruns from a step (the plugin it wrote is replaced without --overwrite); a
     finished calibration says so; another config needs --redo or --restart; bad input names
     the file and field."""
     from calibration.wizard.state import WorkFolder
 
-    folder, out, cfg, _ = wizard_run
+    folder, out, cfg, _ = wizard_copy
     work = WorkFolder(folder / "acme.calibration")
     before = work.load()
     res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
@@ -372,14 +388,14 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
         assert np.min(np.linalg.norm(history - target, axis=1)) < 1e-3  # G-code: 4 decimals
 
 
-def test_plugin_step_with_the_learned_readout(wizard_run):
+def test_plugin_step_with_the_learned_readout(wizard_copy):
     """``--redo plugin`` with the design's learned read-out in the config: the plugin names it,
     its depth gain is calibrated from the rig's presses, and its noise reference is made through
     it (a no-contact frame comes out flat)."""
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
-    folder, out, _, _ = wizard_run
+    folder, out, _, _ = wizard_copy
     readout = Path(__file__).resolve().parent.parent / "exported" / "gelslim_readout.onnx"
     cfg = folder / "readout.json"
     cfg.write_text(json.dumps({**CONFIG, "readout": str(readout), "readout_steps": 0}))
@@ -412,7 +428,7 @@ def test_plugin_step_with_the_learned_readout(wizard_run):
     assert e["near"].mean() <= 20.0                           # the calibration's depth target
 
 
-def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
+def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
     """With ``readout_steps`` the plugin step continues the design's read-out on the unit's rig
     presses (their FEM depth at the rig's intrusion plus the fitted zero offset) and writes it
     into the plugin. It reproduces those targets much better than the design's network does,
@@ -429,7 +445,7 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_run, sensor):
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
-    folder, out, _, _ = wizard_run
+    folder, out, _, _ = wizard_copy
     base = ROOT / "exported" / "gelslim_readout.onnx"
     cfg = folder / "readout_tuned.json"
     cfg.write_text(json.dumps({**CONFIG, "readout": str(base), "readout_steps": 800}))
