@@ -20,6 +20,11 @@ camera_app = typer.Typer(
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 
 
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
 class TargetKind(str, Enum):
     charuco = "charuco"
     dots = "dots"
@@ -96,23 +101,22 @@ def camera(
     blur_px: float = typer.Option(2.5, "--blur-px", help="dots: smoothing before detection, px."),
     figure: Optional[Path] = typer.Option(None, "--figure", help="Also write a PNG of the "
                                           "detections, residuals and rectified frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out "
+                                   "(and --figure) file."),
 ) -> None:
     """Estimate the camera mapping from frames of a calibration target and write it as JSON."""
     from rich.console import Console
     from rich.table import Table
 
     from calibration.camera.fitting import CalibrationError
+    from calibration.outputs import OutputPathError, check_distinct, check_output_file
     from tactile_deploy.imaging.camera_mapping import save_mapping
 
     console = Console()
     files = _list_images(frames)
-    try:
+    try:   # the inputs first (cheap), then the outputs, then the fit
         if target is TargetKind.charuco:
-            from calibration.camera.charuco import (
-                CharucoBoardSpec,
-                calibrate_charuco,
-                load_board_spec,
-            )
+            from calibration.camera.charuco import CharucoBoardSpec, load_board_spec
 
             spec = load_board_spec(board) if board is not None else CharucoBoardSpec()
             names = [p.name for p in files]
@@ -122,16 +126,7 @@ def camera(
                     raise typer.BadParameter(f"{plane_frame} is not among {names}",
                                              param_hint="--plane-frame")
                 plane_index = names.index(plane_frame)
-            images = [_read_image(p) for p in files]
-            fit = calibrate_charuco(
-                images, spec, plane_index=plane_index,
-                board_faces_camera=board_faces is BoardFacing.camera,
-                focal_px=focal_px, names=names,
-            )
-            shown = images[plane_index]
         else:
-            from calibration.camera.dots import calibrate_dots
-
             if pitch_mm is None:
                 raise typer.BadParameter("--target dots needs --pitch-mm", param_hint="--pitch-mm")
             ref_path = reference
@@ -145,6 +140,32 @@ def camera(
             pressed = [p for p in files if p.resolve() != ref_path.resolve()]
             if not pressed:
                 raise typer.BadParameter(f"no pressed frames in {frames} besides the reference")
+    except (CalibrationError, ValueError, FileNotFoundError) as e:
+        typer.echo(f"calibration failed: {e}", err=True)
+        raise typer.Exit(code=1) from None
+    inputs = [*files, reference, board]
+    try:
+        check_output_file(out, "--out", overwrite=overwrite, inputs=inputs, suffixes=(".json",))
+        if figure is not None:
+            check_output_file(figure, "--figure", overwrite=overwrite, inputs=inputs,
+                              suffixes=(".png",))
+        check_distinct(("--out", out), ("--figure", figure))
+    except OutputPathError as e:
+        _fail(str(e))
+    try:
+        if target is TargetKind.charuco:
+            from calibration.camera.charuco import calibrate_charuco
+
+            images = [_read_image(p) for p in files]
+            fit = calibrate_charuco(
+                images, spec, plane_index=plane_index,
+                board_faces_camera=board_faces is BoardFacing.camera,
+                focal_px=focal_px, names=names,
+            )
+            shown = images[plane_index]
+        else:
+            from calibration.camera.dots import calibrate_dots
+
             images = [_read_image(p) for p in pressed]
             fit, _ = calibrate_dots(
                 images, _read_image(ref_path), pitch_mm,
@@ -190,12 +211,20 @@ def make_board(
     square_mm: float = typer.Option(3.0, "--square-mm", help="Square side, mm."),
     marker_mm: float = typer.Option(2.25, "--marker-mm", help="Marker side, mm."),
     dictionary: str = typer.Option("DICT_4X4_100", "--dictionary", help="ArUco dictionary."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out PNG "
+                                   "and the JSON beside it."),
 ) -> None:
     """Write a print-ready ChArUco board (true size at --dpi) and its description JSON."""
     from pydantic import ValidationError
 
     from calibration.camera.charuco import CharucoBoardSpec, save_print_sheet
+    from calibration.outputs import OutputPathError, check_output_file
 
+    try:
+        check_output_file(out, "--out", overwrite=overwrite, suffixes=(".png",))
+        check_output_file(out.with_suffix(".json"), "--out", overwrite=overwrite)
+    except OutputPathError as e:
+        _fail(str(e))
     cols, rows = _parse_pair(squares, "--squares")
     try:
         spec = CharucoBoardSpec(squares_x=cols, squares_y=rows, square_mm=square_mm,

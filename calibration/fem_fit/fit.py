@@ -275,6 +275,11 @@ def fit_fem_parameters(
     if with_force:
         f1 = np.array([render_contact(bank, nu, camera, get_indenter(c.indenter), p)[1] for c, p in with_force])
         fm = np.array([c.force_n for c, _ in with_force])
+        if not np.all(f1 > 0):
+            i = [k for k, c in enumerate(contacts) if c.force_n is not None][int(np.argmin(f1 > 0))]
+            raise ValueError(f"contact {i + 1} has a measured force but its FEM contact gives no "
+                             "force (the indenter does not reach the gel there): E cannot be "
+                             "fitted; check that contact's position and depth")
         E = float(fm @ f1 / (f1 @ f1))
         ratios = fm / f1
         E_std = float(np.std([np.mean(ratios[rng.integers(len(ratios), size=len(ratios))]) for _ in range(200)]))

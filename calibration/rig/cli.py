@@ -18,7 +18,7 @@ from calibration.rig.config import (
     save_rig_config,
 )
 from calibration.rig.errors import RigConfigError, RigError
-from calibration.rig.indent import IndentationRig
+from calibration.rig.indent import IndentationRig, check_press_depth
 
 rig_app = typer.Typer(
     help="Indentation rig: a G-code stage and a force gauge on serial ports.",
@@ -53,10 +53,19 @@ def simulate(
     duration_s: float = typer.Option(
         0.0, min=0.0, help="Stop after this many seconds (0: run until Ctrl-C)."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing "
+                                   "--write-config file."),
 ) -> None:
     """Start a simulated rig on two pseudo-terminals, print their names, run until Ctrl-C."""
+    from calibration.outputs import OutputPathError, check_output_file
     from calibration.rig.simulated import HertzForce, SimulatedRig
 
+    if write_config is not None:
+        try:
+            check_output_file(write_config, "--write-config", overwrite=overwrite,
+                              inputs=[config])
+        except OutputPathError as exc:
+            _fail(str(exc))
     base = None
     if config is not None:
         try:
@@ -83,10 +92,10 @@ def simulate(
         if write_config is not None:
             save_rig_config(sim_config, write_config)
             typer.echo(f"rig config: {write_config}")
-        typer.echo(
-            f"try: press --stage {sim.stage_port} --gauge {sim.gauge_port} "
-            "--x-mm 0 --y-mm 0 --depth-mm 1"
-        )
+        ports = (f"--config {write_config}" if write_config is not None else
+                 (f"--config {config} " if config is not None else "")
+                 + f"--stage {sim.stage_port} --gauge {sim.gauge_port}")
+        typer.echo(f"try: tactile-deploy rig press {ports} --x-mm 0 --y-mm 0 --depth-mm 1")
         typer.echo("simulated rig running; Ctrl-C to stop" if duration_s == 0 else
                    f"simulated rig running for {duration_s:g} s")
         try:
@@ -142,12 +151,16 @@ def press(
     Exit code 1 on a rig or config error, 3 when the force limit stopped the press.
     """
     try:
+        check_press_depth(depth_mm)
+    except ValueError as exc:
+        _fail(f"--depth-mm: {exc}")
+    try:
         cfg = _press_config(config, stage, gauge)
         with IndentationRig(cfg) as rig:
             if home:
                 rig.home()
             record = rig.press(x_mm, y_mm, depth_mm, surface_z_mm=surface_z_mm)
-    except (RigError, RigConfigError) as exc:
+    except (RigError, RigConfigError, ValueError) as exc:
         _fail(str(exc))
     if json_output:
         typer.echo(record.model_dump_json(indent=2))

@@ -320,6 +320,11 @@ def load_rig_config(path: str | os.PathLike) -> RigConfig:
         ) from None
     except OSError as exc:
         raise RigConfigError(f"{path}: cannot read the rig config: {exc}") from None
+    except UnicodeDecodeError:
+        raise RigConfigError(
+            f"{path}: not a text file (expected a rig config JSON); give the rig config, see "
+            "docs/rig.md"
+        ) from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:

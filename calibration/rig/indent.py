@@ -3,7 +3,8 @@
 A press at sensor-frame contact ``(x_mm, y_mm, depth_mm)`` (tip ``depth_mm`` below the gel
 surface at (x, y), whose sensor-frame height is ``surface_z_mm``, 0 for a flat pad):
 
-1. every waypoint is checked against the stage soft limits before anything moves;
+1. every waypoint is checked against the stage soft limits, and the depth against the gel
+   pad's thickness (:data:`PAD_THICKNESS_MM`), before anything moves;
 2. Z up to ``travel_height_mm`` (sensor z), XY travel above the contact (G0), gauge tare
    (``tare_before_press``), G0 down to ``approach_clearance_mm`` above the surface;
 3. G1 down in equal steps of at most ``approach_step_mm``, waiting for each (M400) and reading
@@ -33,8 +34,13 @@ from calibration.rig.base import RigDevice
 from calibration.rig.config import RigConfig
 from calibration.rig.factory import make_gauge, make_stage
 from calibration.rig.stage import StagePosition
+from tactile_deploy.pad.geometry import PadGeometry
 
 logger = logging.getLogger(__name__)
+
+#: Gel pad thickness, mm (the family's pad): a press must stay shallower, or the tip reaches the
+#: backplate.
+PAD_THICKNESS_MM = PadGeometry().thickness_mm
 
 Vec3 = tuple[float, float, float]
 
@@ -86,6 +92,15 @@ def _approach_levels(top_z_mm: float, bottom_z_mm: float, step_mm: float) -> lis
     span = top_z_mm - bottom_z_mm
     n = max(1, math.ceil(span / step_mm - 1e-9))
     return [top_z_mm - span * k / n for k in range(1, n + 1)]
+
+
+def check_press_depth(depth_mm: float) -> None:
+    """Raise ValueError when ``depth_mm`` would reach through the gel pad to its backplate."""
+    if not depth_mm < PAD_THICKNESS_MM:
+        raise ValueError(
+            f"depth {depth_mm:g} mm reaches through the {PAD_THICKNESS_MM:g} mm gel pad to its "
+            f"backplate: command a depth below {PAD_THICKNESS_MM:g} mm"
+        )
 
 
 class IndentationRig(RigDevice):
@@ -157,6 +172,7 @@ class IndentationRig(RigDevice):
         target = self.frame.contact_to_stage(x_mm, y_mm, depth_mm, surface_z_mm)
         for point in (travel, start, target):
             self.stage.check_limits(*point)
+        check_press_depth(depth_mm)
         return travel, start, target
 
     def press(

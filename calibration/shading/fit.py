@@ -49,6 +49,7 @@ from tactile_deploy.imaging.shading import (
 )
 
 from .circles import (
+    ContactNotFoundError,
     contact_radius_from_gradients,
     detect_contact_circle,
     refine_centres,
@@ -300,6 +301,14 @@ def choose_poisson_weights(model: ShadingModel, presses: PressSet, circles, ball
 
 
 # --------------------------------------------------------------------------------- main
+def _detect(frame, reference, name: str) -> np.ndarray:
+    """:func:`.circles.detect_contact_circle`; its error names the press ``name``."""
+    try:
+        return detect_contact_circle(frame, reference)
+    except ContactNotFoundError as e:
+        raise ContactNotFoundError(f"press {name}: {e}") from None
+
+
 def fit_shading(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
                 config: ShadingFitConfig | None = None, circles=None) -> ShadingFit:
     """Fit a :class:`ShadingModel` to ball presses.
@@ -318,7 +327,8 @@ def fit_shading(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
     if circles is None:
         circles = presses.circles
     if circles is None:
-        circles = np.array([detect_contact_circle(f, presses.reference) for f in presses.frames])
+        circles = np.array([_detect(f, presses.reference, n)
+                            for f, n in zip(presses.frames, presses.names)])
     circles_in = np.asarray(circles, np.float64).copy()
     if circles_in.shape != (len(presses), 3):
         raise ValueError(f"circles must be ({len(presses)}, 3) px, got {circles_in.shape}")

@@ -85,6 +85,9 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     import cv2
 
     path = Path(path)
+    if path.is_dir():
+        raise PressDataError(f"{path} is a folder, not an image: give image files "
+                             f"({', '.join(IMAGE_SUFFIXES)})")
     if not path.is_file():
         raise PressDataError(f"image {path} not found")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -106,35 +109,41 @@ def read_annotations(path: str | os.PathLike) -> dict[str, tuple[float, float, f
     path = Path(path)
     if not path.is_file():
         raise PressDataError(f"annotation file {path} not found")
-    with open(path, newline="", encoding="utf-8") as f:
-        reader = csv.DictReader(f)
-        header = tuple(h.strip() for h in (reader.fieldnames or ()))
-        if header != ANNOTATION_COLUMNS:
-            raise PressDataError(f"{path}: header must be {','.join(ANNOTATION_COLUMNS)}, got "
-                                 f"{','.join(header) or '(empty)'}")
-        out: dict[str, tuple[float, float, float]] = {}
-        for line, row in enumerate(reader, start=2):
-            name = (row["img_names"] or "").strip()
-            if not name:
-                raise PressDataError(f"{path}, line {line}: field 'img_names' is empty")
-            vals = []
-            for key in ANNOTATION_COLUMNS[1:]:
-                text = (row[key] or "").strip()
-                try:
-                    v = float(text)
-                except ValueError:
-                    raise PressDataError(f"{path}, line {line}: field '{key}' must be a number "
-                                         f"(pixels), got {text!r}") from None
-                if not np.isfinite(v):
-                    raise PressDataError(f"{path}, line {line}: field '{key}' must be finite, "
-                                         f"got {text!r}")
-                vals.append(v)
-            if vals[2] <= 0:
-                raise PressDataError(f"{path}, line {line}: field 'radius' must be > 0 px, got "
-                                     f"{vals[2]}")
-            if name in out:
-                raise PressDataError(f"{path}, line {line}: image {name!r} is listed twice")
-            out[name] = (vals[0], vals[1], vals[2])
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            header = tuple(h.strip() for h in (reader.fieldnames or ()))
+            if header != ANNOTATION_COLUMNS:
+                raise PressDataError(f"{path}: header must be {','.join(ANNOTATION_COLUMNS)}, "
+                                     f"got {','.join(header) or '(empty)'}")
+            reader.fieldnames = list(header)   # "img_names, center_x, ..." reads the same
+            rows = list(reader)
+    except UnicodeDecodeError:
+        raise PressDataError(f"{path}: not a text file (expected a CSV with the header "
+                             f"{','.join(ANNOTATION_COLUMNS)})") from None
+    out: dict[str, tuple[float, float, float]] = {}
+    for line, row in enumerate(rows, start=2):
+        name = (row["img_names"] or "").strip()
+        if not name:
+            raise PressDataError(f"{path}, line {line}: field 'img_names' is empty")
+        vals = []
+        for key in ANNOTATION_COLUMNS[1:]:
+            text = (row[key] or "").strip()
+            try:
+                v = float(text)
+            except ValueError:
+                raise PressDataError(f"{path}, line {line}: field '{key}' must be a number "
+                                     f"(pixels), got {text!r}") from None
+            if not np.isfinite(v):
+                raise PressDataError(f"{path}, line {line}: field '{key}' must be finite, "
+                                     f"got {text!r}")
+            vals.append(v)
+        if vals[2] <= 0:
+            raise PressDataError(f"{path}, line {line}: field 'radius' must be > 0 px, got "
+                                 f"{vals[2]}")
+        if name in out:
+            raise PressDataError(f"{path}, line {line}: image {name!r} is listed twice")
+        out[name] = (vals[0], vals[1], vals[2])
     if not out:
         raise PressDataError(f"{path}: no annotation rows")
     return out

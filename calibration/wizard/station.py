@@ -102,16 +102,21 @@ class CameraStation(Station):
         self.description = f"frame source {source_config.model_dump()}"
         self.source = make_source(source_config)
         self.source.connect()
-        first = self.source.read()
-        if first is None:
-            raise StationError(f"the frame source {source_config.model_dump()} gave no frame")
-        h, w = first.image.shape[:2]
-        self.image_size = (w, h)
-        if rig_config is not None:
-            self.rig = IndentationRig(rig_config)
-            self.rig.connect()
-            self.rig.home()
-            self.automatic_presses = True
+        try:
+            first = self.source.read()
+            if first is None:
+                raise StationError(f"the frame source {source_config.model_dump()} gave no "
+                                   "frame")
+            h, w = first.image.shape[:2]
+            self.image_size = (w, h)
+            if rig_config is not None:
+                self.rig = IndentationRig(rig_config)
+                self.rig.connect()
+                self.rig.home()
+                self.automatic_presses = True
+        except BaseException:
+            self.close()   # the source (and the rig's ports) are not left open
+            raise
 
     def grab(self, n: int = 1) -> np.ndarray:
         frames = []

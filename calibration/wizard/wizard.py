@@ -104,6 +104,19 @@ def open_station(source: str, rig: str | None, gauge: str | None,
     return CameraStation(src, rig_config)
 
 
+def _open_station(source: str, rig: str | None, gauge: str | None,
+                  config: WizardConfig) -> Station:
+    """:func:`open_station`; a source or rig that cannot be opened is a :class:`WizardError`."""
+    from calibration.rig import RigError
+    from tactile_deploy.runtime.sources.base import SourceError
+
+    try:
+        return open_station(source, rig, gauge, config)
+    except (SourceError, RigError, StationError) as e:
+        raise WizardError(f"--source {source}" + (f" --rig {rig}" if rig else "")
+                          + f": {e}") from None
+
+
 def _prepare_state(work: WorkFolder, sensor: str, source: str, rig: str | None,
                    config: WizardConfig, config_given: bool, redo: str | None, restart: bool,
                    ui) -> tuple[WizardState, WizardConfig]:
@@ -218,19 +231,31 @@ def run_wizard(sensor: str, *, source: str, rig: str | None, gauge: str | None,
     config_given = config is not None
     config = config or WizardConfig()
     wf = WorkFolder(work or default_work_folder(out))
+    station = None
+    if restart or not wf.exists():
+        # a new calibration: the source and rig must open before its state is written, so
+        # that a mistyped --source leaves nothing behind
+        station = _open_station(source, rig, gauge, config)
     try:
-        state, config = _prepare_state(wf, sensor, source, rig, config, config_given, redo,
-                                       restart, ui)
-    except WizardStateError as e:
-        raise WizardError(str(e)) from None
+        try:
+            state, config = _prepare_state(wf, sensor, source, rig, config, config_given, redo,
+                                           restart, ui)
+        except WizardStateError as e:
+            raise WizardError(str(e)) from None
+    except BaseException:
+        if station is not None:
+            station.close()
+        raise
     if state.first_pending() is None:
+        if station is not None:
+            station.close()
         ui.say(f"Every step is done; the plugin is {out}. Pass --redo STEP to redo a step.")
         return EXIT_OK
     ui.say(f"Calibrating [bold]{sensor}[/]: frames from {source}"
            + (f", rig {rig}" if rig else ", presses by hand") + f"; work folder {wf.folder}")
-    station = None
     try:
-        station = open_station(source, rig, gauge, config)
+        if station is None:
+            station = _open_station(source, rig, gauge, config)
         ui.say(f"station: {station.description}, {station.image_size[0]} x "
                f"{station.image_size[1]} px")
         ctx = Context(sensor, config, station, wf, ui, state, Path(out), overwrite, model)

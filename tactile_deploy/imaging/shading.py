@@ -354,11 +354,16 @@ def load_shading(path: str | os.PathLike) -> ShadingModel:
     if not path.is_file():
         raise FileNotFoundError(f"shading model {path} not found; fit one with "
                                 "`tactile-deploy calibrate shading`")
+    not_a_model = (f"{path}: not a readable .npz file, so not a shading model; fit one with "
+                   "`tactile-deploy calibrate shading` and pass the .npz it writes")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):   # a .npy array
+            raise ShadingModelError(not_a_model)
+        with loaded as z:
             arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as e:
-        raise ShadingModelError(f"{path}: not a readable .npz file ({e})") from None
+    except (zipfile.BadZipFile, ValueError, OSError):
+        raise ShadingModelError(not_a_model) from None
     for key in ("header_json", "slot_of_bin", "table"):
         if key not in arrays:
             raise ShadingModelError(f"{path}: array '{key}' is missing (has "
