@@ -8,6 +8,7 @@ any) untouched. Folders are built in a staging folder beside the target and swap
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from contextlib import contextmanager
@@ -49,8 +50,25 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def write_json(path: str | os.PathLike, obj) -> None:
-    """Write a JSON document to ``path`` atomically (2-space indent, trailing newline)."""
-    write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    """Write a JSON document to ``path`` atomically (2-space indent, trailing newline).
+
+    NaN and infinities, which JSON has no words for, are written as ``null`` (not measured), so
+    every file is strict JSON that any parser reads."""
+    text = json.dumps(_finite_or_null(obj), indent=2, sort_keys=False, allow_nan=False)
+    write_text(path, text + "\n")
+
+
+def _finite_or_null(obj):
+    """``obj`` with every non-finite float (Python or numpy) replaced by None, recursively."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def replace_folder(staging: str | os.PathLike, target: str | os.PathLike) -> None:

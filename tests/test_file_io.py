@@ -71,3 +71,17 @@ def test_validation_error_text_names_each_field_and_its_value():
     assert any(ln.startswith("  field 'colour': Extra inputs") and ln.endswith("(got dict)")
                for ln in lines)
     assert lines[-1] == "  (see doc.md)"
+
+
+def test_write_json_writes_strict_json_with_null_for_non_finite_numbers(tmp_path):
+    import numpy as np
+
+    path = tmp_path / "summary.json"
+    write_json(path, {"p50_ms": float("nan"), "rates": [1.5, np.float32(np.inf), np.float64(-np.inf)],
+                      "pair": (2, "x")})
+
+    def refuse(name):
+        raise AssertionError(f"{path} holds {name}, which strict JSON parsers refuse")
+
+    assert json.loads(path.read_text(), parse_constant=refuse) == {
+        "p50_ms": None, "rates": [1.5, None, None], "pair": [2, "x"]}

@@ -79,8 +79,10 @@ def test_run_writes_meshes_log_and_preview(plugin, predictor, tmp_path):
     assert vol.cells_dict["tetra"].shape == predictor.topology.tets.shape
     surf = trimesh.load(out / "mesh_000002.ply", process=False)
     assert np.allclose(surf.vertices, expected, atol=1e-5)
-    assert np.allclose(surf.metadata["_ply_raw"]["vertex"]["data"]["disp_z"],
+    assert np.allclose(surf.metadata["_ply_raw"]["vertex"]["data"]["disp_z_mm"],
                        (expected - predictor.topology.rest_vertices_mm)[:, 2], atol=1e-6)
+    glb = trimesh.load(out / "mesh_000002.glb", force="mesh", process=False)   # glTF: metres
+    assert np.allclose(glb.vertices, 1e-3 * expected, atol=1e-8)
     rows = (out / "frames.csv").read_text().splitlines()
     assert rows[0].startswith("frame_index,t_capture_ns,latency_ms") and len(rows) == 7
     run = json.loads((out / "run.json").read_text())
@@ -126,8 +128,63 @@ def test_write_failure_mid_run_is_logged_and_the_loop_goes_on(plugin, predictor,
     with caplog.at_level(logging.ERROR):
         summary = Runner(predictor, _clip_source(plugin), RunOptions(out_dir=out, formats=("vtu",))).run()
     assert summary.frames == 6 and summary.meshes_written == 1
+    assert summary.meshes_skipped == 5                 # the failed one and the four after it
     assert "No space left on device" in summary.write_error and "frame 1" in summary.write_error
     assert caplog.text.count("No space left") == 1
+
+
+def test_realtime_pacing_is_not_latency_and_restarts_with_a_loop(plugin, predictor):
+    """Frames 0.2 s apart in the recording: the run takes the recording's time, but each frame
+    counts as captured when it is due, so the latency is the processing alone; a looping
+    recording is paced again after each restart."""
+    frames, _, _ = load_clip(plugin.demo_clip_path())
+    clip = ArrayPlayback(list(frames[:3]), np.arange(3) * 200_000_000, "slow clip", loop=True)
+    summary = Runner(predictor, clip, RunOptions(realtime=True, max_frames=7)).run()
+    assert summary.frames == 7 and summary.stopped_by == "max frames"
+    assert summary.wall_s >= 0.78                       # 0.4 s per pass of the clip, twice
+    assert summary.latency_p50_ms < 100.0               # not the 200 ms of pacing
+
+
+def test_a_second_interrupt_while_finishing_is_held_back():
+    from tactile_deploy.runtime.run import _interrupts_held
+
+    before = signal.getsignal(signal.SIGINT)
+    with _interrupts_held():
+        os.kill(os.getpid(), signal.SIGINT)             # would raise KeyboardInterrupt here
+        time.sleep(0.05)
+    assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_a_run_without_any_mesh_fails_and_leaves_valid_json(plugin, tmp_path):
+    """Every frame of the folder has the wrong size: exit 1, and run.json is strict JSON (no NaN
+    latency: null)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(frames / f"{i:04d}.png"), np.zeros((50, 60, 3), np.uint8))
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source", str(frames),
+                              "--out", str(out), "--no-forces"])
+    assert res.exit_code == 1, res.output
+    assert "no frame" in res.output and "3 refused" in " ".join(res.output.split())
+
+    def no_nan(name):
+        raise AssertionError(f"run.json holds {name}")
+
+    run = json.loads((out / "run.json").read_text(), parse_constant=no_nan)
+    assert run["frames"] == 0 and run["bad_frames"] == 3 and run["latency_p50_ms"] is None
+
+
+def test_cli_refuses_before_making_the_output_folder(plugin, tmp_path):
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source",
+                              str(tmp_path / "missing.mp4"), "--out", str(out), "--no-forces"])
+    assert res.exit_code == 2 and "file not found" in " ".join(res.output.split())
+    assert not out.exists()                             # a corrected rerun is not blocked
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--providers", "gpu"])
+    assert res.exit_code == 2 and "auto, cpu, cuda" in " ".join(res.output.split())
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--out", "--help"])
+    assert res.exit_code == 2 and "looks like an option" in " ".join(res.output.split())
 
 
 # ------------------------------------------------------------------------------------ stream
@@ -347,8 +404,8 @@ def test_loop_memory_does_not_grow_with_frames(plugin, predictor):
     early, late = [], []
 
     class Probe(Runner):
-        def step(self, frame):
-            super().step(frame)
+        def step(self, frame, due_ns=None):
+            super().step(frame, due_ns)
             n = self.summary.frames
             if 300 <= n < 350 or 1300 <= n < 1350:
                 (early if n < 350 else late).append(tracemalloc.get_traced_memory()[0])

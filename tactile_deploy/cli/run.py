@@ -43,7 +43,8 @@ def run_command(
     loop: bool = typer.Option(False, "--loop", help="Replay a recorded source endlessly (Ctrl-C ends)."),
     realtime: bool = typer.Option(False, "--realtime", help="Play recordings at their recorded pace."),
     threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads."),
-    providers: str = typer.Option("auto", "--providers", help="auto | cpu | cuda."),
+    providers: str = typer.Option("auto", "--providers", help="onnxruntime execution providers: "
+                                  "auto | cpu | cuda."),
     family_model: bool = typer.Option(False, "--family-model", help="Use the family model even "
                                       "when the plugin has an adapted one."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Write into a non-empty --out "
@@ -77,6 +78,12 @@ def run_command(
         fmts = parse_formats(formats)
     except ValueError as e:
         fail(f"--format: {e}")
+    if providers not in PROVIDERS:
+        fail(f"--providers {providers!r}: choose one of {', '.join(PROVIDERS)}")
+    if out is not None and str(out).startswith("-"):
+        fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
+             "(e.g. --out run1)")
+    opened: list = []
     try:
         plugin = SensorPlugin.load(sensor)
         if source is None:
@@ -87,6 +94,10 @@ def run_command(
             config, from_manifest = parse_source(source, loop=loop), False
         predictor = MeshPredictor.from_plugin(plugin, adapted=False if family_model else None,
                                               threads=threads, providers=providers)
+        # the source is opened before --out is made: a wrong source leaves no folder behind
+        src = make_source(config, plugin, from_manifest=from_manifest)
+        src.connect()
+        opened.append(src)
         out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
         preview_dir = None
         if view and out_dir is None:
@@ -107,7 +118,6 @@ def run_command(
                                   f"(cached in {path.parent}); --no-forces skips it")
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
-        src = make_source(config, plugin, from_manifest=from_manifest)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -117,10 +127,16 @@ def run_command(
                               f"topology/{plugin.name})")
     except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
             FrameError, FileNotFoundError) as e:
+        _close(opened)
         fail(str(e))
+    except OSError as e:  # e.g. a cache folder that cannot be made
+        _close(opened)
+        fail(f"{e}; check the path's permissions (the cache folder moves with "
+             "TACTILE_DEPLOY_CACHE_DIR), or run with --no-forces")
     except Exception as e:  # e.g. the publisher's bind error
         from tactile_deploy.runtime.publish import PublishError
 
+        _close(opened)
         if isinstance(e, PublishError):
             fail(str(e))
         raise
@@ -165,6 +181,21 @@ def run_command(
         console.print(f"preview in {preview_dir / 'preview.png'}")
     if summary.write_error:
         raise typer.Exit(1)
+    if summary.frames == 0 and summary.stopped_by != "interrupted":
+        fail(f"no frame of {src.name} became a mesh ({summary.bad_frames} refused, "
+             f"{summary.unreadable_frames} unreadable): check that the source holds this "
+             f"sensor's camera frames ({plugin.name} expects "
+             f"{plugin.manifest.camera.image_width_px} x {plugin.manifest.camera.image_height_px} px RGB)",
+             code=1)
+
+
+#: onnxruntime execution providers `--providers` accepts.
+PROVIDERS = ("auto", "cpu", "cuda")
+
+
+def _close(sources) -> None:
+    for src in sources:
+        src.disconnect()
 
 
 def _raise_interrupt(signum, frame) -> None:

@@ -12,17 +12,25 @@ files -> preview. What can go wrong and what happens:
   the run stops with :class:`~tactile_deploy.runtime.sources.base.SourceDisconnectedError`;
 * mesh files that cannot be written: logged once, writing stops, the loop goes on;
 * Ctrl-C (KeyboardInterrupt) or SIGTERM (the CLI maps it to KeyboardInterrupt): the loop ends,
-  queued meshes are written, the source and the publisher are closed, the summary is returned.
+  queued meshes are written, the source and the publisher are closed, the summary is returned;
+  further Ctrl-C / SIGTERM while the outputs are finished are held back (in the main thread),
+  so frames.csv and run.json are always complete.
+
+Latency is from the frame's capture to its mesh (and forces). With ``realtime``, a recording's
+frame counts as captured when it is due, so the pacing wait is not latency.
 
 Statistics use fixed-size ring buffers, so memory stays flat however long the run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import logging
 import os
+import signal
+import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
@@ -72,6 +80,7 @@ class RunSummary:
     bad_frames: int = 0
     ood_frames: int = 0
     dropped_frames: int = 0
+    unreadable_frames: int = 0
     reconnects: int = 0
     meshes_written: int = 0
     meshes_skipped: int = 0
@@ -80,8 +89,8 @@ class RunSummary:
     published: int = 0
     wall_s: float = 0.0
     fps: float = 0.0
-    latency_p50_ms: float = float("nan")
-    latency_p95_ms: float = float("nan")
+    latency_p50_ms: float | None = None
+    latency_p95_ms: float | None = None
     stage_p50_ms: dict = field(default_factory=dict)
     last_total_force_n: float | None = None
     stopped_by: str = "end of source"
@@ -98,9 +107,10 @@ class _Ring:
         self.a[self.i % len(self.a)] = x
         self.i += 1
 
-    def pct(self, q: float) -> float:
+    def pct(self, q: float) -> float | None:
+        """The q-th percentile of the samples kept, None before the first sample."""
         v = self.a[: min(self.i, len(self.a))]
-        return float(np.percentile(v, q)) if len(v) else float("nan")
+        return float(np.percentile(v, q)) if len(v) else None
 
 
 def prepare_out_dir(path: Path, overwrite: bool = False, ask=None) -> Path:
@@ -212,21 +222,27 @@ class Runner:
         outputs are closed)."""
         self._open_outputs()
         self._t0 = time.monotonic()
-        start_source_ns = None
+        pace = None  # (monotonic ns, recording ns) of the frame the pacing counts from
+        last_t_source = None
         try:
             with self.source:
-                while self.opt.max_frames is None or self.summary.frames < self.opt.max_frames:
+                while True:
+                    if self.opt.max_frames is not None and self.summary.frames >= self.opt.max_frames:
+                        self.summary.stopped_by = "max frames"
+                        break
                     frame = self.source.read()
                     if frame is None:
                         break
+                    due_ns = None
                     if self.opt.realtime and frame.t_source_ns is not None:
-                        if start_source_ns is None:
-                            start_source_ns = (time.monotonic_ns(), frame.t_source_ns)
-                        due = start_source_ns[0] + frame.t_source_ns - start_source_ns[1]
-                        wait = (due - time.monotonic_ns()) / 1e9
+                        if pace is None or frame.t_source_ns < last_t_source:  # first, or a loop restarts
+                            pace = (time.monotonic_ns(), frame.t_source_ns)
+                        last_t_source = frame.t_source_ns
+                        due_ns = pace[0] + frame.t_source_ns - pace[1]
+                        wait = (due_ns - time.monotonic_ns()) / 1e9
                         if wait > 0:
                             time.sleep(wait)
-                    self.step(frame)
+                    self.step(frame, due_ns)
                 stats = self.source.stats
         except KeyboardInterrupt:
             self.summary.stopped_by = "interrupted"
@@ -240,8 +256,13 @@ class Runner:
         return self.summary
 
     def _finish(self, stats) -> None:
+        with _interrupts_held():
+            self._finish_outputs(stats)
+
+    def _finish_outputs(self, stats) -> None:
         s = self.summary
         s.dropped_frames = stats.dropped
+        s.unreadable_frames = stats.unreadable
         s.reconnects = stats.reconnects
         s.wall_s = time.monotonic() - self._t0
         s.fps = s.frames / s.wall_s if s.wall_s > 0 else 0.0
@@ -258,8 +279,9 @@ class Runner:
             except OSError as e:
                 log.error("could not write the run summary into %s: %s", self.opt.out_dir, e)
 
-    def step(self, frame) -> None:
-        """Process one :class:`~tactile_deploy.runtime.sources.base.Frame`."""
+    def step(self, frame, due_ns: int | None = None) -> None:
+        """Process one :class:`~tactile_deploy.runtime.sources.base.Frame`; ``due_ns``: when a
+        paced recording's frame was due (monotonic ns), its capture time for the latency."""
         o, s = self.opt, self.summary
         laps = Laps().start()
         try:
@@ -281,7 +303,8 @@ class Runner:
             force = self.forces.estimate(pred.vertices_mm, clip_tension=o.clip_tension,
                                          pressure=self.publisher is not None)
             laps.lap("forces")
-        latency_ms = (time.monotonic_ns() - frame.t_mono_ns) / 1e6
+        captured_ns = frame.t_mono_ns if due_ns is None else max(frame.t_mono_ns, due_ns)
+        latency_ms = (time.monotonic_ns() - captured_ns) / 1e6
         self._track_ood(frame.index, pred)
         if self.publisher is not None:
             self.publisher.publish(
@@ -326,8 +349,10 @@ class Runner:
             self._recent) > 1 and self._recent[-1] > self._recent[0] else 0.0
         s = self.summary
         force = "" if s.last_total_force_n is None else f"  force {s.last_total_force_n:6.2f} N"
+        p50 = self._lat.pct(50)
+        latency = "   -  " if p50 is None else f"{p50:6.2f}"
         return (f"{self.sensor}: frame {s.frames}  {fps:7.1f} fps  latency p50 "
-                f"{self._lat.pct(50):6.2f} ms{force}  dropped {self.source.stats.dropped}  "
+                f"{latency} ms{force}  dropped {self.source.stats.dropped}  "
                 f"ood {s.ood_frames}  bad {s.bad_frames}")
 
     def _track_ood(self, index: int, pred) -> None:
@@ -354,7 +379,7 @@ class Runner:
         inside = "in" if pred.in_distribution else "OUT OF"
         lines = [
             (f"{self.sensor} frame {index}   max depth {float(pred.depth_mm.max()):.3f} mm   "
-             f"max displacement {float(np.abs(pred.displacement_mm).max()):.3f} mm"),
+             f"max displacement {float(np.linalg.norm(pred.displacement_mm, axis=-1).max()):.3f} mm"),
             f"OOD score {pred.ood_score:.3g} ({inside} training range){force_txt}",
             (f"colour scale 0-{self.opt.colour_max_mm:g} mm (left: depth, right: "
              "displacement magnitude, z x3)"),
@@ -368,6 +393,29 @@ class Runner:
             self.renderer = None
 
 
+@contextlib.contextmanager
+def _interrupts_held():
+    """Hold Ctrl-C and SIGTERM back while the outputs are finished (a second Ctrl-C would leave
+    frames.csv half-written); signals can only be handled in the main thread, elsewhere this
+    does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+
+    def hold(signum, _frame):
+        if not held:
+            log.warning("finishing the outputs; they will be complete in a moment")
+        held.append(signum)
+
+    previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def default_preview_dir() -> Path:
     """A new folder for previews when ``--view`` is given without ``--out``."""
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -379,11 +427,13 @@ def summary_text(s: RunSummary) -> str:
     lines = [
         (f"{s.sensor} from {s.source}: {s.frames} frames in {s.wall_s:.2f} s "
          f"({s.fps:.1f} fps), stopped by {s.stopped_by}"),
-        f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
-        f"  stages p50 (ms): {stages}",
-        (f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}, "
-         f"outside training range {s.ood_frames}"),
     ]
+    if s.latency_p50_ms is not None:
+        lines += [f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
+                  f"  stages p50 (ms): {stages}"]
+    unreadable = f", unreadable {s.unreadable_frames}" if s.unreadable_frames else ""
+    lines.append(f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}"
+                 f"{unreadable}, outside training range {s.ood_frames}")
     if s.meshes_written or s.write_error or s.meshes_skipped:
         lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}")
     if s.write_error:

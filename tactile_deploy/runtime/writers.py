@@ -1,10 +1,13 @@
 """Writing predicted meshes to files, on a background thread so the sensor loop never waits.
 
 Formats (chosen per run): ``ply``, ``obj``, ``glb`` -- the outer surface through trimesh, vertex
-colours by displacement magnitude on a fixed scale, and (PLY, GLB) the displacement vector as
-per-vertex attributes ``disp_x``/``disp_y``/``disp_z`` (mm); ``vtu`` -- the tet volume through
-meshio with point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. File names
-``mesh_<frame index, 6 digits>.<ext>``; every file is written atomically. Units mm, sensor frame.
+colours by displacement magnitude on a fixed scale; ``vtu`` -- the tet volume through meshio with
+point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. PLY also carries the
+displacement vector per vertex (``disp_x_mm``, ``disp_y_mm``, ``disp_z_mm``). Units mm, sensor
+frame, except GLB: glTF's unit is the metre, so GLB positions are in metres and its per-vertex
+displacement attributes are ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` (glTF names custom
+attributes with a leading underscore). File names ``mesh_<frame index, 6 digits>.<ext>``; every
+file is written atomically.
 
 If writing fails (disk full, folder removed, permissions changed), the error is logged once,
 further writes are skipped, and :attr:`MeshWriter.error` holds the message; the loop goes on.
@@ -44,13 +47,14 @@ def write_surface(path: Path, topology, vertices_mm: np.ndarray, max_mm: float =
     v = np.asarray(vertices_mm, np.float64)
     disp = v - topology.rest_vertices_mm
     mag = np.linalg.norm(disp, axis=1)
-    mesh = trimesh.Trimesh(v, topology.surface_faces, process=False)
+    glb = path.suffix == ".glb"
+    scale, unit = (1e-3, "m") if glb else (1.0, "mm")
+    mesh = trimesh.Trimesh(v * scale, topology.surface_faces, process=False)
     rgb = colourise(mag, max_mm)
     mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(v), 1), 255, np.uint8)], 1)
     if path.suffix in (".ply", ".glb"):
-        mesh.vertex_attributes["disp_x"] = disp[:, 0].astype(np.float32)
-        mesh.vertex_attributes["disp_y"] = disp[:, 1].astype(np.float32)
-        mesh.vertex_attributes["disp_z"] = disp[:, 2].astype(np.float32)
+        for k, axis in enumerate("xyz"):
+            mesh.vertex_attributes[f"disp_{axis}_{unit}"] = (disp[:, k] * scale).astype(np.float32)
     with atomic_path(path) as tmp:
         mesh.export(tmp)
 
@@ -92,6 +96,7 @@ class MeshWriter:
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
+            self.skipped += 1
             return False
         item = (int(index), np.array(vertices_mm, np.float32))
         if block:
@@ -101,6 +106,7 @@ class MeshWriter:
                     return True
                 except queue.Full:
                     continue
+            self.skipped += 1
             return False
         try:
             self._q.put_nowait(item)
@@ -115,7 +121,8 @@ class MeshWriter:
             if item is None:
                 return
             index, v = item
-            if self.error is not None:
+            if self.error is not None:      # queued before writing failed
+                self.skipped += 1
                 continue
             try:
                 for fmt in self.formats:
@@ -126,6 +133,7 @@ class MeshWriter:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1
             except Exception as e:  # noqa: BLE001 - any failure stops writing, the loop goes on
+                self.skipped += 1
                 self.error = (f"writing meshes into {self.folder} failed at frame {index}: "
                               f"{type(e).__name__}: {e}; no further meshes are written")
                 log.error(self.error)

@@ -31,7 +31,8 @@ class VideoSource(FrameSource):
         import cv2
 
         if not self.path.is_file():
-            raise SourceError(f"{self.name}: file not found")
+            raise SourceError(f"{self.name}: file not found (looked for {self.path.resolve()}); "
+                              "check the path, or give a camera index (--source 0)")
         self._cap = (self._factory or cv2.VideoCapture)(str(self.path))
         if not self._cap.isOpened():
             raise SourceError(f"{self.name}: OpenCV cannot open it (unknown container or codec); "
