@@ -45,6 +45,9 @@ def check_output_file(path: str | os.PathLike, option: str, *, overwrite: bool,
     command reads. Raises :class:`OutputPathError` naming the option, the path and what to do.
     """
     path = Path(path)
+    if path.name.startswith("-"):
+        raise OutputPathError(f"{option} {path}: that looks like an option, not a file name; give "
+                              f"the file name right after {option}")
     if suffixes and path.suffix.lower() not in suffixes:
         raise OutputPathError(f"{option} {path}: the file name must end in "
                               f"{' or '.join(suffixes)}, got "

@@ -101,6 +101,9 @@ def test_camera_out_must_be_json_and_not_an_input(tmp_path):
                          "--board", board, "--out", board, "--overwrite"))
     assert "is also an input" in msg and "board.json" in msg
     json.loads(board.read_text())  # untouched
+    # an option where the file name should be (`--figure --help`): refused, nothing written
+    msg = _error(_invoke(*args, "--out", tmp_path / "m.json", "--figure", "--help"))
+    assert "looks like an option" in msg and not (Path.cwd() / "--help").exists()
 
 
 # ------------------------------------------------------------ 2. existing outputs, duplicates
