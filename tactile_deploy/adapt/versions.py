@@ -79,9 +79,9 @@ def check_writable(plugin) -> None:
     if not os.access(probe, os.W_OK):
         raise PermissionError(
             f"cannot write adapted versions into {probe} (read-only); copy the plugin to a writable "
-            f"place (`tactile-deploy plugins copy {plugin.name} DEST`) and put DEST's parent folder on "
-            "$TACTILE_DEPLOY_PLUGIN_PATH (the copy then shadows this one), or pass --dry-run to "
-            "measure only")
+            f"place (`tactile-deploy plugins copy {plugin.name} DIR/{plugin.name}`) and put DIR on "
+            "$TACTILE_DEPLOY_PLUGIN_PATH (the copy, of the same name, then shadows this one), or pass "
+            "--dry-run to measure only")
 
 
 def active_version(folder: str | Path) -> VersionRecord | None:

@@ -12,7 +12,8 @@ from tactile_deploy.cli.common import console, err_console, fail
 def adapt_command(
     sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder (`tactile-deploy plugins list`)."),
     frames: Path | None = typer.Option(None, "--frames", help="Folder of the sensor's camera frames (images)."),
-    pattern: str = typer.Option("*.png", "--pattern", help="Which files of --frames to read."),
+    pattern: str | None = typer.Option(None, "--pattern", help="Which files of --frames to read "
+                                       "(default: every .png/.jpg/.jpeg/.bmp/.tif/.tiff file)."),
     source: str | None = typer.Option(
         None, "--source", help="Or a frame source: demo | camera index (0) | video | recording.npz | virtual[:NAME] "
         "(as in `tactile-deploy run`). Default: the plugin's default source."),

@@ -15,12 +15,9 @@ indenters_app = typer.Typer(help="The indenter library.", no_args_is_help=True)
 @pad_app.command("info")
 def pad_info(name: str = typer.Option("gelslim", "--pad", help="Shipped pad name.")) -> None:
     """Print the frozen pad's geometry, node sets, quality figures and content hash."""
-    from tactile_deploy.pad.asset import load_pad, load_pad_card
+    from tactile_deploy.pad.asset import load_pad_card
 
-    try:
-        mesh = load_pad(name)
-    except (KeyError, FileNotFoundError, ValueError) as exc:
-        fail(str(exc))
+    mesh = _load_pad(name)
     card = load_pad_card(name)
     g = card.geometry
     console.print(f"pad {card.name} v{card.version}: {g.shape}, radius {g.radius_mm} mm, thickness {g.thickness_mm} mm")
@@ -36,17 +33,21 @@ def pad_info(name: str = typer.Option("gelslim", "--pad", help="Shipped pad name
 
 @pad_app.command("export")
 def pad_export(
-    out: Path = typer.Option(..., "--out", help="Output file: .vtu/.msh/.xdmf (volume) or .stl/.ply/.obj/.glb (surface)."),
+    out: Path = typer.Option(..., "--out", help="Output file: .vtu/.vtk/.msh/.inp/.mesh (volume) or "
+                             ".stl/.ply/.obj/.glb/.off (surface)."),
     name: str = typer.Option("gelslim", "--pad", help="Shipped pad name."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Export the rest pad mesh (volume via meshio, surface via trimesh)."""
-    from tactile_deploy.pad.asset import load_pad
-    from tactile_deploy.pad.export import SURFACE_SUFFIXES, export_surface, export_volume
+    from tactile_deploy.pad.export import SURFACE_SUFFIXES, VOLUME_SUFFIXES, export_surface, export_volume
 
+    if out.suffix.lower() not in VOLUME_SUFFIXES + SURFACE_SUFFIXES:
+        got = repr(out.suffix) if out.suffix else "no suffix"
+        fail(f"--out {out}: the suffix must name a mesh format, got {got}; use a volume suffix "
+             f"({', '.join(VOLUME_SUFFIXES)}) or a surface suffix ({', '.join(SURFACE_SUFFIXES)})")
     if out.exists() and not overwrite:
         fail(f"{out} exists; pass --overwrite to replace it")
-    mesh = load_pad(name)
+    mesh = _load_pad(name)
     try:
         if out.suffix.lower() in SURFACE_SUFFIXES:
             export_surface(mesh, out)
@@ -55,6 +56,18 @@ def pad_export(
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     console.print(f"wrote {out}")
+
+
+def _load_pad(name: str):
+    """The shipped pad ``name``, or a clean error listing the shipped pads."""
+    from tactile_deploy.pad.asset import SHIPPED_PADS, load_pad
+
+    if name not in SHIPPED_PADS:
+        fail(f"--pad {name!r} is not a shipped pad; pass one of: {', '.join(sorted(SHIPPED_PADS))}")
+    try:
+        return load_pad(name)
+    except (FileNotFoundError, ValueError) as exc:
+        fail(str(exc))
 
 
 @indenters_app.command("list")

@@ -103,15 +103,27 @@ def plugins_copy(
                                       help="Also copy the adapted model versions."),
 ) -> None:
     """Copy a plugin to a folder of your own (e.g. a writable one to adapt it), keeping the files
-    it shares with other plugins (the family model) where they are."""
-    from tactile_deploy.runtime.plugins import PluginError, copy_plugin
+    it shares with other plugins (the family model) where they are. The copy's plugin name is
+    DEST's folder name: the original's name makes it shadow the original, another name makes it a
+    plugin of its own."""
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin, copy_plugin, discover_plugins
 
     try:
+        original = SensorPlugin.load(name).name
         out = copy_plugin(name, dest, with_adapted)
     except (PluginError, OSError) as e:
         fail(str(e))
-    console.print(f"copied plugin {name} to {out}; put {out.parent} on "
-                  "$TACTILE_DEPLOY_PLUGIN_PATH to use it by name (it then shadows the original)")
+    current = discover_plugins()[0].get(out.name)
+    if current is not None and current.folder.resolve() == out.resolve():
+        use = f"its folder is on $TACTILE_DEPLOY_PLUGIN_PATH: `--sensor {out.name}` runs it"
+    else:
+        use = f"put {out.parent} on $TACTILE_DEPLOY_PLUGIN_PATH to run it with `--sensor {out.name}`"
+        if current is not None:
+            use += f"; it then shadows the plugin {out.name!r} in {current.folder}"
+        else:
+            use += "; it shadows no other plugin"
+    renamed = "" if out.name == original else f" (renamed from {original!r}; meshes on mesh/{out.name})"
+    console.print(f"copied plugin {original} to {out} as plugin {out.name!r}{renamed}; {use}")
 
 
 @plugins_app.command("schema")

@@ -22,6 +22,7 @@ not depend on E: everything is computed at E = 1 MPa and forces are scaled by ``
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,13 +37,43 @@ from tactile_deploy.fem.material import Material
 from tactile_deploy.fem.sparse_solver import SparseCholesky
 from tactile_deploy.pad.mesh import PadMesh
 
+log = logging.getLogger(__name__)
+
 
 def cache_dir() -> Path:
-    """Folder for cached operators: ``$TACTILE_DEPLOY_CACHE_DIR`` or ``~/.cache/tactile-deploy``."""
+    """Folder for cached operators: ``$TACTILE_DEPLOY_CACHE_DIR`` or ``~/.cache/tactile-deploy``
+    (created when possible; one that cannot be is still returned: nothing is found in it, and
+    :func:`save_cached` warns instead of writing)."""
     root = os.environ.get("TACTILE_DEPLOY_CACHE_DIR")
     path = Path(root) if root else Path.home() / ".cache" / "tactile-deploy"
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass
     return path
+
+
+_cache_warned = False
+
+
+def save_cached(path: Path, arr: np.ndarray) -> bool:
+    """Write ``arr`` to the cache file ``path`` (.npy, atomic). When the cache cannot be
+    written, warn once per process and return False: the caller keeps its result in memory."""
+    global _cache_warned
+    from tactile_deploy.atomic import atomic_path
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.save(f, arr)
+        return True
+    except OSError as e:
+        if not _cache_warned:
+            _cache_warned = True
+            log.warning("cannot write the cache in %s: %s; set TACTILE_DEPLOY_CACHE_DIR to a "
+                        "writable folder (this run goes on with the result in memory, the next "
+                        "one computes it again)", path.parent, e.strerror or e)
+        return False
 
 
 @dataclass(frozen=True)
@@ -241,12 +272,9 @@ class ContactSimulator:
                 pass
         self._C, self._G = self.compute_operators(progress=progress)
         if self._use_cache:
-            from tactile_deploy.atomic import atomic_path
-
-            folder.mkdir(parents=True, exist_ok=True)
             for name, arr in (("G.npy", self._G), ("C.npy", self._C)):
-                with atomic_path(folder / name) as tmp, open(tmp, "wb") as f:
-                    np.save(f, arr)
+                if not save_cached(folder / name, arr):
+                    break
         return True
 
     def compute_operators(self, chunk: int = 256, progress=None) -> tuple[np.ndarray, np.ndarray]:

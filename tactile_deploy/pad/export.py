@@ -1,7 +1,8 @@
 """Export a (deformed) pad mesh to files FEM and graphics tools open.
 
-* volume: VTU, MSH (gmsh 2.2), XDMF, ... through meshio (format from the suffix), with node-set
-  and displacement point data;
+* volume: VTU, VTK, MSH (gmsh 2.2), INP (Abaqus), MESH (Medit) through meshio (format from the
+  suffix), with node-set and displacement point data; each is one self-contained file (XDMF is
+  not offered: meshio writes it as two files and needs h5py);
 * surface: STL, PLY, OBJ, GLB, ... through trimesh (the boundary triangles, outward normals),
   with per-vertex displacement magnitude as colour where the format keeps colours.
 
@@ -18,7 +19,7 @@ import numpy as np
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.pad.mesh import PadMesh
 
-VOLUME_SUFFIXES = (".vtu", ".vtk", ".msh", ".xdmf", ".inp", ".mesh")
+VOLUME_SUFFIXES = (".vtu", ".vtk", ".msh", ".inp", ".mesh")
 SURFACE_SUFFIXES = (".stl", ".ply", ".obj", ".glb", ".off")
 
 

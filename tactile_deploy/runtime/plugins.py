@@ -26,6 +26,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -64,6 +65,8 @@ MODEL_GRID = OutputGrid()
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 _SHA256 = r"^[0-9a-f]{64}$"
+#: What a plugin name (and so a plugin folder's name) may be.
+_NAME = r"^[a-z0-9][a-z0-9_\-]*$"
 
 
 class PluginError(ValueError):
@@ -120,7 +123,7 @@ class PluginManifest(BaseModel):
     model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
-    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_\-]*$",
+    name: str = Field(pattern=_NAME,
                       description="Plugin name (lower case, digits, '-' and '_').")
     description: str = Field("", description="One line about the sensor.")
     family: FamilySpec = Field(description="Sensor family and its pad mesh.")
@@ -201,7 +204,9 @@ def load_manifest(path: str | os.PathLike) -> PluginManifest:
         raise PluginError(f"{path}: field 'format_version': this version of tactile-deploy reads "
                           f"version {FORMAT_VERSION}, the file has {doc.get('format_version')!r}")
     try:
-        return PluginManifest.model_validate(doc)
+        # strict JSON types: "0.3" is no number, "yes" no boolean, 1.0 no integer (an integer is
+        # a number); JSON arrays fill the tuple fields
+        return PluginManifest.model_validate_json(json.dumps(doc), strict=True)
     except ValidationError as e:
         raise PluginError(validation_error_text(
             path, e, "plugin manifest",
@@ -658,6 +663,12 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
                 with_adapted: bool = False) -> Path:
     """Copy a plugin folder to ``dest`` (which must not exist) so that the copy works there.
 
+    The registry names a plugin by its folder, so the copy's manifest ``name`` is set to
+    ``dest``'s folder name: a copy in a folder of the original's name shadows the original once
+    its parent folder is on ``$TACTILE_DEPLOY_PLUGIN_PATH`` (ahead of the original's); under
+    another name it is a plugin of its own (its meshes are published on ``mesh/<new name>``),
+    and a virtual default source that named no sensor keeps the original's virtual sensor.
+
     Files the manifest names outside the plugin folder (the shipped plugins share the family
     model and the learned read-out in ``exported/``) are recorded by absolute path in the copy's
     ``plugin.json``; files inside are copied with the folder. The adapted versions
@@ -675,8 +686,18 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
     if not dest.parent.is_dir():
         raise PluginError(f"cannot copy plugin {plugin.name!r} to {dest}: folder {dest.parent} "
                           "does not exist")
+    if not re.fullmatch(_NAME, dest.name):
+        raise PluginError(f"cannot copy plugin {plugin.name!r} to {dest}: the folder name is the "
+                          f"copy's plugin name (field 'name'): lower case letters, digits, '-' and "
+                          f"'_', starting with a letter or digit, got {dest.name!r}; choose "
+                          "another folder name")
     source = plugin.folder.resolve()
     doc = json.loads((plugin.folder / MANIFEST_NAME).read_text(encoding="utf-8"))
+    if dest.name != plugin.name:
+        doc["name"] = dest.name
+        default = doc.get("default_source", {})
+        if default.get("kind") == "virtual" and not default.get("sensor"):
+            default["sensor"] = plugin.name
     for key in plugin.manifest.files():
         path = plugin.path_of(key).resolve()
         if not path.is_relative_to(source):

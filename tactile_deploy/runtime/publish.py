@@ -51,6 +51,20 @@ class PublishError(RuntimeError):
     """The publisher cannot bind its address (the message says which and what to do)."""
 
 
+def check_address(address: str) -> None:
+    """Refuse a ``tcp://`` address whose port is not 1-65535 or ``*`` (any free port), before any
+    socket is made: ZeroMQ would bind another port (65536 + n binds n) without a word."""
+    if not address.startswith("tcp://"):
+        return
+    host, sep, port = address[len("tcp://"):].rpartition(":")
+    if not sep or not host:
+        raise PublishError(f"cannot publish on {address!r}: a tcp address needs a host and a port, "
+                           "e.g. tcp://*:5555 or tcp://127.0.0.1:5555")
+    if port != "*" and not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        raise PublishError(f"cannot publish on {address!r}: the port must be 1-65535, or * for any "
+                           f"free port, got {port!r}; e.g. tcp://*:5555")
+
+
 def _part(name: str, arr: np.ndarray, dtype: str) -> tuple[dict, bytes]:
     a = np.ascontiguousarray(arr, dtype=np.dtype(dtype))
     return {"name": name, "dtype": dtype, "shape": list(a.shape)}, a.tobytes()
@@ -63,6 +77,7 @@ class MeshPublisher:
                  topology_every_s: float = 2.0, context=None):
         import zmq
 
+        check_address(address)
         self.address = address
         self.sensor = sensor
         self.topology = topology

@@ -66,7 +66,9 @@ class ImageFolderSourceConfig(BaseModel):
 
     kind: Literal["images"] = Field("images", description="Source kind.")
     path: str = Field(description="Folder of images.")
-    pattern: str = Field("*.png", description="Glob of the files to read, e.g. '*.jpg'.")
+    pattern: str | None = Field(
+        None, description="Glob of the files to read, e.g. '*.jpg' (None: every file with an "
+        "image suffix: .png, .jpg, .jpeg, .bmp, .tif, .tiff, any case).")
     fps: float = Field(30.0, gt=0, description="Frame rate the timestamps assume, frames/s.")
     loop: bool = Field(False, description="Start again at the first frame after the last.")
 
@@ -103,11 +105,13 @@ SOURCE_FORMS = {
     "demo": "demo",
     "camera": "0 | 1 | /dev/video2 | camera:0",
     "video": "clip.mp4 | clip.avi | clip.mkv",
-    "images": "path/to/folder/ (png/jpg files)",
+    "images": "path/to/folder/ (png/jpg/jpeg/bmp/tif/tiff files)",
     "npz": "recording.npz",
     "virtual": "virtual | virtual:gelslim2",
 }
 
+#: Suffixes an image folder reads when no pattern is given (compared in lower case).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mjpg", ".mjpeg")
 
 

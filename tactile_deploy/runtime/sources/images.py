@@ -1,7 +1,8 @@
-"""A folder of still images (PNG, JPEG, ...), read in name order, BGR converted to RGB.
+"""A folder of still images (PNG, JPEG, BMP, TIFF), read in name order, BGR converted to RGB.
 
-An unreadable image is logged and skipped (counted in ``stats.unreadable``); timestamps assume
-the configured frame rate.
+Without a pattern every file with an image suffix (:data:`IMAGE_SUFFIXES`, any case) is read.
+An unreadable image is logged and skipped (counted in ``stats.unreadable``, its name kept once in
+``unreadable_files``); timestamps assume the configured frame rate.
 """
 
 from __future__ import annotations
@@ -13,14 +14,19 @@ from pathlib import Path
 import numpy as np
 
 from tactile_deploy.runtime.sources.base import Frame, FrameSource, SourceError
+from tactile_deploy.runtime.sources.config import IMAGE_SUFFIXES
 
 log = logging.getLogger(__name__)
 
 
 class ImageFolderSource(FrameSource):
-    """Images matching ``pattern`` in ``folder``, sorted by name."""
+    """Images matching ``pattern`` (None: any image suffix) in ``folder``, sorted by name.
 
-    def __init__(self, folder: str | os.PathLike, pattern: str = "*.png", fps: float = 30.0,
+    unreadable_files : names of the files skipped because they are not readable images, each
+        listed once (in the order met).
+    """
+
+    def __init__(self, folder: str | os.PathLike, pattern: str | None = None, fps: float = 30.0,
                  loop: bool = False, name: str | None = None):
         super().__init__()
         self.folder = Path(folder)
@@ -30,14 +36,22 @@ class ImageFolderSource(FrameSource):
         self.finite = not loop
         self._loop = bool(loop)
         self._files: list[Path] = []
+        self.unreadable_files: list[str] = []
         self._i = 0
         self._t = 0
 
     def _open(self) -> None:
         if not self.folder.is_dir():
             raise SourceError(f"{self.name}: folder not found")
-        self._files = sorted(p for p in self.folder.glob(self.pattern) if p.is_file())
+        if self.pattern is None:
+            found = (p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            found = self.folder.glob(self.pattern)
+        self._files = sorted(p for p in found if p.is_file())
         if not self._files:
+            if self.pattern is None:
+                raise SourceError(f"{self.name}: no image files ({', '.join(IMAGE_SUFFIXES)}) in "
+                                  "it; pass the folder that holds the frames")
             raise SourceError(f"{self.name}: no files match {self.pattern!r}; pass another "
                               "pattern or folder")
 
@@ -56,6 +70,8 @@ class ImageFolderSource(FrameSource):
             img = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if img is None:
                 self.stats.unreadable += 1
+                if path.name not in self.unreadable_files:
+                    self.unreadable_files.append(path.name)
                 log.warning("%s: cannot read %s as an image; skipped", self.name, path.name)
                 continue
             t = int(round(self._t * 1e9 / self.fps))
