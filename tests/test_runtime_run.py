@@ -175,6 +175,31 @@ def test_a_run_without_any_mesh_fails_and_leaves_valid_json(plugin, tmp_path):
     assert run["frames"] == 0 and run["bad_frames"] == 3 and run["latency_p50_ms"] is None
 
 
+def test_frames_of_an_image_folder_are_traced_to_their_files(plugin, tmp_path):
+    """frames.csv names each mesh's image file; an unreadable file is counted and named."""
+    import csv
+
+    frames, _, _ = load_clip(plugin.demo_clip_path())
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, name in ((0, "a_0001.png"), (1, "b,0002.jpg"), (2, "c_0003.png")):
+        cv2.imwrite(str(folder / name), cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR),
+                    [cv2.IMWRITE_JPEG_QUALITY, 100])
+    (folder / "b_0002b.png").write_bytes(b"not an image")
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source", str(folder),
+                              "--out", str(out), "--no-forces", "--format", "ply"])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert "3 frames" in text and "unreadable 1 (b_0002b.png)" in text
+    with open(out / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["frame_index"], r["source_label"]) for r in rows] == [
+        ("0", "a_0001.png"), ("1", "b,0002.jpg"), ("2", "c_0003.png")]
+    run = json.loads((out / "run.json").read_text())
+    assert run["unreadable_frames"] == 1 and run["unreadable_files"] == ["b_0002b.png"]
+
+
 def test_cli_refuses_before_making_the_output_folder(plugin, tmp_path):
     out = tmp_path / "out"
     res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source",
@@ -185,6 +210,9 @@ def test_cli_refuses_before_making_the_output_folder(plugin, tmp_path):
     assert res.exit_code == 2 and "auto, cpu, cuda" in " ".join(res.output.split())
     res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--out", "--help"])
     assert res.exit_code == 2 and "looks like an option" in " ".join(res.output.split())
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--publish", "tcp://*:99999",
+                              "--out", str(out), "--no-forces"])
+    assert res.exit_code == 2 and "1-65535" in res.output and not out.exists()
 
 
 # ------------------------------------------------------------------------------------ stream

@@ -80,6 +80,13 @@ def run_command(
         fail(f"--format: {e}")
     if providers not in PROVIDERS:
         fail(f"--providers {providers!r}: choose one of {', '.join(PROVIDERS)}")
+    if publish:
+        from tactile_deploy.runtime.publish import PublishError, check_address
+
+        try:
+            check_address(publish)
+        except PublishError as e:
+            fail(str(e))
     if out is not None and str(out).startswith("-"):
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")

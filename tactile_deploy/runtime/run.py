@@ -81,6 +81,7 @@ class RunSummary:
     ood_frames: int = 0
     dropped_frames: int = 0
     unreadable_frames: int = 0
+    unreadable_files: list = field(default_factory=list)
     reconnects: int = 0
     meshes_written: int = 0
     meshes_skipped: int = 0
@@ -188,7 +189,7 @@ class Runner:
             self._csv_tmp = o.out_dir / ".frames.csv.partial"
             self._csv = open(self._csv_tmp, "w", encoding="utf-8")
             self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
-                            "total_normal_force_n\n")
+                            "total_normal_force_n,source_label\n")
         if o.view:
             from tactile_deploy.runtime.preview import MeshRenderer
 
@@ -263,6 +264,7 @@ class Runner:
         s = self.summary
         s.dropped_frames = stats.dropped
         s.unreadable_frames = stats.unreadable
+        s.unreadable_files = list(getattr(self.source, "unreadable_files", []))
         s.reconnects = stats.reconnects
         s.wall_s = time.monotonic() - self._t0
         s.fps = s.frames / s.wall_s if s.wall_s > 0 else 0.0
@@ -320,8 +322,9 @@ class Runner:
                                block=getattr(self.source, "finite", False))
         if self._csv is not None:
             f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
+            label = "" if frame.label is None else _csv_field(frame.label)
             self._csv.write(f"{frame.index},{frame.t_wall_ns},{latency_ms:.4f},"
-                            f"{pred.ood_score:.6g},{int(pred.in_distribution)},{f_txt}\n")
+                            f"{pred.ood_score:.6g},{int(pred.in_distribution)},{f_txt},{label}\n")
         s.frames += 1
         if force is not None:
             s.last_total_force_n = float(force.total_normal_force_n)
@@ -393,6 +396,13 @@ class Runner:
             self.renderer = None
 
 
+def _csv_field(text: str) -> str:
+    """``text`` as one CSV field (quoted when it holds a comma, quote or line break)."""
+    if any(c in text for c in ',"\n\r'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
 @contextlib.contextmanager
 def _interrupts_held():
     """Hold Ctrl-C and SIGTERM back while the outputs are finished (a second Ctrl-C would leave
@@ -431,7 +441,10 @@ def summary_text(s: RunSummary) -> str:
     if s.latency_p50_ms is not None:
         lines += [f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
                   f"  stages p50 (ms): {stages}"]
-    unreadable = f", unreadable {s.unreadable_frames}" if s.unreadable_frames else ""
+    unreadable = ""
+    if s.unreadable_frames:
+        names = ", ".join(s.unreadable_files[:5]) + (" ..." if len(s.unreadable_files) > 5 else "")
+        unreadable = f", unreadable {s.unreadable_frames}" + (f" ({names})" if names else "")
     lines.append(f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}"
                  f"{unreadable}, outside training range {s.ood_frames}")
     if s.meshes_written or s.write_error or s.meshes_skipped:

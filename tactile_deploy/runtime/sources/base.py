@@ -41,6 +41,8 @@ class Frame:
     t_wall_ns : capture time, ns since the UNIX epoch.
     t_mono_ns : capture time on ``time.monotonic_ns()``.
     t_source_ns : time within a recording, ns from its first frame (None for live sources).
+    label : where in the source the frame came from, when it says (an image folder: the file's
+        name), else None.
     """
 
     image: np.ndarray
@@ -48,6 +50,7 @@ class Frame:
     t_wall_ns: int
     t_mono_ns: int
     t_source_ns: int | None = None
+    label: str | None = None
 
 
 @dataclass
@@ -128,10 +131,10 @@ class FrameSource:
         pass
 
     def _frame(self, image: np.ndarray, t_source_ns: int | None = None,
-               stamp: tuple[int, int] | None = None) -> Frame:
+               stamp: tuple[int, int] | None = None, label: str | None = None) -> Frame:
         wall, mono = stamp if stamp is not None else now_ns()
         return Frame(image=image, index=self.stats.delivered, t_wall_ns=wall, t_mono_ns=mono,
-                     t_source_ns=t_source_ns)
+                     t_source_ns=t_source_ns, label=label)
 
 
 class ArrayPlayback(FrameSource):

@@ -76,7 +76,8 @@ class ImageFolderSource(FrameSource):
                 continue
             t = int(round(self._t * 1e9 / self.fps))
             self._t += 1
-            return self._frame(np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)), t)
+            return self._frame(np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)), t,
+                               label=path.name)
         if self._files and self.stats.delivered == 0 and self.stats.unreadable >= len(self._files):
             raise SourceError(f"{self.name}: none of the {len(self._files)} files is a readable "
                               "image")
