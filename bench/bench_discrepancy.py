@@ -102,14 +102,14 @@ def run(sensor_name: str, seeds: int, n_contacts: int, null_seeds: int, runtime_
         v = result.verdict
         entry = {"kind": kind, "seed": seed, "truth": truth, "label": _label(v),
                  "verdict": v.verdict, "effect": v.effect, "parameters": v.parameters,
-                 "gap_before_mm": v.gap_before, "gap_after_mm": v.gap_after,
+                 "gap_before_mm": v.gap_before_mm, "gap_after_mm": v.gap_after_mm,
                  "explained": v.explained_fraction, "confidence": v.confidence,
                  "second_effect": v.second_effect, "time_s": result.timings_s["total"],
                  **(extra or {})}
         runs.append(entry)
         log(f"[{time.perf_counter() - t_start:7.0f} s] {kind} seed {seed} truth {truth}: "
-            f"{entry['label']} {v.parameters} gap {1e3 * v.gap_before:.2f} -> "
-            f"{'-' if v.gap_after is None else f'{1e3 * v.gap_after:.2f}'} um "
+            f"{entry['label']} {v.parameters} gap {1e3 * v.gap_before_mm:.2f} -> "
+            f"{'-' if v.gap_after_mm is None else f'{1e3 * v.gap_after_mm:.2f}'} um "
             f"({entry['time_s']:.0f} s)")
         return v
 

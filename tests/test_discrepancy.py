@@ -82,9 +82,9 @@ def test_hidden_effect_is_named_recovered_and_closes_the_gap(setup, effect, seed
     data = hidden_effect_data(sensor, [EffectSpec(name=effect, params=truth)], contacts,
                               NOISE_MM, seed)
     v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
-    print(effect, truth, "->", v.parameters, v.gap_before, v.gap_after)
+    print(effect, truth, "->", v.parameters, v.gap_before_mm, v.gap_after_mm)
     assert v.verdict == "effect" and v.effect == effect
-    assert v.gap_after <= 0.5 * v.gap_before
+    assert v.gap_after_mm <= 0.5 * v.gap_before_mm
     for name, value in truth.items():
         assert v.parameters[name] == pytest.approx(value, abs=TOLERANCE[name]), name
     assert v.confidence > 0.9
@@ -128,7 +128,7 @@ def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
     updated = VirtualSensor(load_sensor_config(applied.path), simulator=small_sim)
     v2 = find_discrepancy(updated, data, OPTS).verdict
     assert v2.verdict == "effect" and v2.effect == other
-    assert v2.gap_after <= 0.5 * v2.gap_before
+    assert v2.gap_after_mm <= 0.5 * v2.gap_before_mm
 
 
 def test_contacts_are_estimated_when_not_commanded(small_sim):
@@ -244,7 +244,8 @@ def test_measured_data_round_trip_and_errors(setup, tmp_path):
     rows = ["indenter,x_mm,y_mm,theta_deg,depth_mm,force_n,depth_file"]
     for i in range(4):
         np.save(folder / f"d{i}.npy", data.depth_mm[i])
-        rows.append(f"{data.indenter[i]},{data.x_mm[i]},{data.y_mm[i]},,"
+        rows.append(f"{data.indenter[i]},{data.x_mm[i] if i else ''},"
+                    f"{data.y_mm[i] if i else ''},,"
                     f"{data.depth_cmd_mm[i] if i else ''},{data.force_n[i]},d{i}.npy")
     (folder / "contacts.csv").write_text("\n".join(rows) + "\n")
     f = load_measured(folder)
@@ -305,10 +306,11 @@ def test_command_prints_json_writes_report_and_applies(pad_sim, tmp_path):
                                    "--apply"])
     assert out.exit_code == 0, out.output
     doc = json.loads(out.stdout)
-    assert {"verdict", "effect", "parameters", "gap_before", "gap_after", "candidates"} <= set(doc)
+    assert {"verdict", "effect", "parameters", "gap_before_mm", "gap_after_mm",
+            "candidates"} <= set(doc)
     assert doc["verdict"] == "effect" and doc["effect"] == "zero_offset"
     assert doc["parameters"]["offset_mm"] == pytest.approx(0.03, abs=0.003)
-    assert doc["gap_after"] < 0.5 * doc["gap_before"]
+    assert doc["gap_after_mm"] < 0.5 * doc["gap_before_mm"]
     for name in ("report.md", "verdict.json", "residual_maps.png", "candidates.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 0
     assert [e.name for e in load_sensor_config(model).effects] == ["zero_offset"]

@@ -65,7 +65,7 @@ def test_effect_hidden_in_frames_is_named_and_recovered(frames_setup, effect, pa
     v = result.verdict
     assert v.verdict == "effect" and v.effect == effect, v.message
     assert v.parameters[key] == pytest.approx(params[key], abs=tol)
-    assert v.gap_after <= 0.5 * v.gap_before
+    assert v.gap_after_mm <= 0.5 * v.gap_before_mm
 
 
 def test_tables_for_frames_refuse_depth_maps(frames_setup):

@@ -11,7 +11,8 @@ writes the new JSON atomically. Every version is kept beside it::
 
 A shipped sensor (given by name) is never changed in place: its model is copied to
 ``<name>.json`` in the chosen folder (version 1 = the shipped model) and the effect goes into
-the copy.
+the copy. A version file is never overwritten: a new version takes the next number whose file
+does not exist (files left by an earlier history, or by an interrupted run, are kept).
 """
 
 from __future__ import annotations
@@ -55,6 +56,54 @@ def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
+def _history(history_path: Path) -> list[dict]:
+    """The version entries of ``history_path`` ([] when it does not exist)."""
+    if not history_path.exists():
+        return []
+    try:
+        history = json.loads(history_path.read_text(encoding="utf-8"))
+        entries = history["versions"]
+        if not all(isinstance(e, dict) and isinstance(e.get("version"), int)
+                   and isinstance(e.get("file"), str) and isinstance(e.get("sha256"), str)
+                   for e in entries):
+            raise ValueError("every entry of 'versions' needs version (int), file and sha256")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError,
+            ValueError) as e:
+        raise SensorConfigError(f"{history_path}: not a version history ({e}); restore it, or "
+                                "move it away to start a new history (the version files beside "
+                                "it are kept; new versions take the next free numbers)") from None
+    return entries
+
+
+def _next_version(versions: Path, entries: list[dict]) -> int:
+    """The next version number after ``entries`` whose file does not exist yet in ``versions``."""
+    k = max([int(e["version"]) for e in entries] + [0]) + 1
+    while (versions / f"v{k}.json").exists():  # never overwrite a version file
+        k += 1
+    return k
+
+
+def check_target(sensor: str, config: VirtualSensorConfig, folder: Path | None = None) -> Path:
+    """The model file that :func:`apply_effect` writes for ``sensor``, checked before any work:
+    its folder exists, a shipped sensor's copy does not exist yet, the version history (if any)
+    is readable. Raises FileNotFoundError, FileExistsError or SensorConfigError."""
+    is_path = sensor.endswith(".json")
+    target = Path(sensor) if is_path else Path(folder or ".") / f"{config.name}.json"
+    if not target.parent.is_dir():
+        raise FileNotFoundError(f"cannot write the sensor model {target}: folder "
+                                f"{target.parent} does not exist; create it, or choose another "
+                                "--model-dir")
+    if target.exists() and not is_path:
+        raise FileExistsError(f"{target} exists already: pass it as --sensor {target} to add the "
+                              "effect to that model, or choose another folder")
+    versions = target.with_name(f"{target.stem}.versions")
+    if versions.exists() and not versions.is_dir():
+        raise FileExistsError(f"{versions} is a file: the versions of {target.name} go into a "
+                              "folder of that name; move the file away")
+    _history(versions / "history.json")
+    return target
+
+
 def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, reason: dict,
                  folder: Path | None = None) -> AppliedModel:
     """Write ``config`` + ``spec`` as the next version of the model ``sensor``.
@@ -64,25 +113,11 @@ def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, rea
     history records (verdict numbers, measured data).
     """
     is_path = sensor.endswith(".json")
-    target = Path(sensor) if is_path else Path(folder or ".") / f"{config.name}.json"
-    if not target.parent.is_dir():
-        raise FileNotFoundError(f"cannot write the sensor model {target}: folder "
-                                f"{target.parent} does not exist")
-    if target.exists() and not is_path:
-        raise FileExistsError(f"{target} exists already: pass it as --sensor {target} to add the "
-                              "effect to that model, or choose another folder")
+    target = check_target(sensor, config, folder)
     versions = target.with_name(f"{target.stem}.versions")
     history_path = versions / "history.json"
     versions.mkdir(exist_ok=True)
-    if history_path.exists():
-        try:
-            history = json.loads(history_path.read_text(encoding="utf-8"))
-            entries = history["versions"]
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
-            raise SensorConfigError(f"{history_path}: not a version history ({e}); move it "
-                                    "away to start a new one") from None
-    else:
-        entries = []
+    entries = _history(history_path)
     now = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     current_text = config.model_dump_json(indent=2) + "\n"
     if is_path:
@@ -90,7 +125,7 @@ def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, rea
         if on_disk != current_text:
             raise SensorConfigError(f"{target} changed since it was read; run the workflow again")
     if not entries or entries[-1]["sha256"] != _sha256(current_text):
-        k = len(entries) + 1
+        k = _next_version(versions, entries)
         name = f"v{k}.json"
         write_text(versions / name, current_text)
         entries.append({"version": k, "file": name, "sha256": _sha256(current_text),
@@ -100,7 +135,7 @@ def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, rea
     previous = versions / entries[-1]["file"]
     new = with_effect(config, spec)
     new_text = new.model_dump_json(indent=2) + "\n"
-    k = len(entries) + 1
+    k = _next_version(versions, entries)
     name = f"v{k}.json"
     write_text(versions / name, new_text)
     entries.append({"version": k, "file": name, "sha256": _sha256(new_text), "created": now,

@@ -1,7 +1,7 @@
 """``tactile-deploy discrepancy``: which effect is missing from a sensor model.
 
     tactile-deploy discrepancy --sensor NAME|MODEL.json --measured DATA.npz|DIR
-        [--report DIR] [--json] [--apply] [--model-dir DIR]
+        [--report DIR [--overwrite]] [--json] [--apply] [--model-dir DIR]
 
 Registered through the ``tactile_deploy.cli`` entry-point group (pyproject.toml). Progress goes
 to stderr; stdout holds the verdict (text, or JSON with ``--json``).
@@ -21,6 +21,8 @@ def discrepancy_command(
                                   "contacts.csv (docs/discrepancy.md)."),
     report: Path | None = typer.Option(None, help="Write report.md, verdict.json and figures "
                                        "into this folder."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --report "
+                                   "folder."),
     json_output: bool = typer.Option(False, "--json", help="Print the verdict as JSON."),
     apply: bool = typer.Option(False, help="Write the found effect into the sensor model "
                                "(a new version; every previous one is kept)."),
@@ -37,13 +39,17 @@ def discrepancy_command(
                                 "responses (the machine's cores)."),
 ) -> None:
     """Name the effect missing from a sensor model, with its size (or: none, unexplained)."""
-    from pydantic import ValidationError
-
-    from calibration.discrepancy.apply import apply_effect
+    from calibration.discrepancy.apply import apply_effect, check_target
     from calibration.discrepancy.candidates import candidate_library
-    from calibration.discrepancy.measured import MeasuredDataError, load_measured
+    from calibration.discrepancy.measured import (
+        MeasuredDataError,
+        load_measured,
+        measured_sha256,
+    )
+    from calibration.discrepancy.report import check_report_folder
     from calibration.discrepancy.verdict import verdict_text
     from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
+    from calibration.outputs import OutputPathError
     from tactile_deploy.cli.common import err_console, fail, prepare_simulator, progress_bar
     from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
     from tactile_deploy.sensors.config import SensorConfigError
@@ -60,10 +66,26 @@ def discrepancy_command(
             candidate_library(names)
         except KeyError as e:
             fail(str(e.args[0]))
+    # outputs before any work: the report folder and the model file --apply writes
+    model_file = None
+    try:
+        if apply:
+            model_file = check_target(sensor, config, model_dir)
+        if report is not None:
+            check_report_folder(report, overwrite=overwrite,
+                                inputs=[measured, sensor if sensor.endswith(".json") else None,
+                                        model_file])
+    except (OutputPathError, OSError, SensorConfigError) as e:
+        fail(str(e))
     try:
         data = load_measured(measured)
-    except (MeasuredDataError, FileNotFoundError, ValidationError) as e:
+        measured_hash = measured_sha256(measured) if apply else None
+    except (MeasuredDataError, FileNotFoundError) as e:
         fail(f"{e}")
+    except Exception as e:  # what the loader's checks did not foresee: one line, no traceback
+        fail(f"{measured}: cannot be read as measured data ({type(e).__name__}: "
+             f"{' '.join(str(e).split())}); check it against the layout in docs/discrepancy.md "
+             "(Measured data)")
     virtual = VirtualSensor(config)
     prepare_simulator(virtual.simulator)
     opts = DiscrepancyOptions(folds=folds, null_replicates=null_replicates, seed=seed,
@@ -81,7 +103,10 @@ def discrepancy_command(
     if report is not None:
         from calibration.discrepancy.report import write_report
 
-        files = write_report(result, report)
+        try:
+            files = write_report(result, report, overwrite=overwrite)
+        except OSError as e:
+            fail(f"the report could not be written into {report}: {e}")
         err_console.print(f"report: {files[0]} ({len(files)} files)")
     if apply:
         if v.verdict != "effect":
@@ -89,10 +114,10 @@ def discrepancy_command(
                     "ambiguous": "look-alikes explain it equally well: run the experiment "
                                  "first, or restrict --candidates"}[v.verdict]
             fail(f"--apply: nothing written, {what}", code=1)
-        reason = {"gap_before_mm": v.gap_before, "gap_after_mm": v.gap_after,
+        reason = {"gap_before_mm": v.gap_before_mm, "gap_after_mm": v.gap_after_mm,
                   "explained_fraction": v.explained_fraction, "confidence": v.confidence,
-                  "intervals": v.intervals, "measured": str(measured),
-                  "n_samples": v.n_samples}
+                  "intervals": v.intervals, "measured": str(measured.resolve()),
+                  "measured_sha256": measured_hash, "n_samples": v.n_samples}
         try:
             out = apply_effect(sensor, config, result.verification.spec, reason, model_dir)
         except (OSError, SensorConfigError) as e:

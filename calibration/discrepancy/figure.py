@@ -70,7 +70,7 @@ def main(argv=None) -> None:
         save_measured(Path(tmp) / "presses.npz", data)
         opts = DiscrepancyOptions(workers=args.workers)
         before = find_discrepancy(sensor, data, opts)
-        write_report(before, args.out)
+        write_report(before, args.out, overwrite=True)  # every file in it is made here
         (args.out / "report.md").unlink()
         applied = apply_effect("gelslim1", sensor.config, before.verification.spec,
                                {"example": True}, Path(tmp))

@@ -15,25 +15,35 @@ Two layouts hold the same content (N samples, one row per sample):
   ``frame_file`` (an RGB image), optional ``contact_id``; paths relative to the folder.
 
 A contact is **known** when ``x_mm``, ``y_mm`` and ``depth_mm`` are given (``theta_deg`` missing
-counts as 0); otherwise the workflow estimates it from the map. :func:`load_measured` checks
-everything and names the file, field, expected and actual value of any problem;
+counts as 0); otherwise the workflow estimates it from the map. The three are given together or
+not at all (a sample with some of them is refused). Commanded depths and maps are mm pushed into
+the gel (> 0), shallower than the pad's thickness; ``noise_mm`` is > 0. :func:`load_measured`
+checks everything and names the file, field, expected and actual value of any problem;
 :func:`save_measured` writes the .npz atomically.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from tactile_deploy.indenters import ContactPose
+from tactile_deploy.pad.geometry import PadGeometry
 
 #: Depth grid of the measured maps (the standard grid of docs: 128 x 128 over +-17.5 mm).
 DEPTH_SHAPE = (128, 128)
 PER_SAMPLE = ("x_mm", "y_mm", "theta_deg", "depth_mm", "force_n")
+#: Gel pad thickness, mm: no depth (commanded or in a map) reaches it.
+PAD_THICKNESS_MM = PadGeometry().thickness_mm
+#: The fields of a commanded contact's position, given together or not at all (field names).
+POSE_FIELDS = (("x_mm", "x_mm"), ("y_mm", "y_mm"), ("depth_cmd_mm", "depth_mm"))
 
 
 class MeasuredDataError(ValueError):
@@ -72,7 +82,7 @@ class MeasuredData:
                                         f"(one value per sample), got {arr.shape}")
         for name in ("x_mm", "y_mm", "theta_deg", "depth_cmd_mm", "force_n"):
             setattr(self, name, np.asarray(getattr(self, name), np.float64))
-        self.contact_id = np.asarray(self.contact_id, np.int64)
+        self.contact_id = self._contact_ids(np.asarray(self.contact_id))
         if self.depth_mm is None and self.frames is None:
             raise MeasuredDataError(f"{self.source}: no 'depth' maps and no 'frames'; give at "
                                     "least one of them")
@@ -88,6 +98,13 @@ class MeasuredData:
                 raise MeasuredDataError(f"{self.source}: field 'depth' has {int(bad.sum())} NaN "
                                         f"or infinite values (first in sample {i}); replace them "
                                         "(0 where the gel is not pushed in)")
+            deep = d.reshape(n, -1).max(axis=1) if n else np.zeros(0)
+            if np.any(deep > PAD_THICKNESS_MM):
+                i = int(np.argmax(deep > PAD_THICKNESS_MM))
+                raise MeasuredDataError(
+                    f"{self.source}: field 'depth' reaches {deep[i]:g} mm in {self._sample(i)}, "
+                    f"deeper than the {PAD_THICKNESS_MM:g} mm gel pad: maps must be in mm "
+                    "pushed in (maps in um: divide them by 1000)")
             self.depth_mm = d
         if self.frames is not None:
             f = np.asarray(self.frames)
@@ -98,13 +115,57 @@ class MeasuredData:
             if not isinstance(name, str) or not name:
                 raise MeasuredDataError(f"{self.source}: field 'indenter' of sample {i} must be "
                                         f"a library name or mesh path, got {name!r}")
+        given = np.array([np.isfinite(getattr(self, name)) for name, _ in POSE_FIELDS])
+        partly = given.any(axis=0) & ~given.all(axis=0)
+        if partly.any():
+            i = int(np.argmax(partly))
+            missing = [f for (_, f), g in zip(POSE_FIELDS, given[:, i]) if not g]
+            present = [f for (_, f), g in zip(POSE_FIELDS, given[:, i]) if g]
+            raise MeasuredDataError(
+                f"{self.source}: {self._sample(i)} has {', '.join(present)} but no "
+                f"{', '.join(missing)} (NaN or empty): a commanded contact needs x_mm, y_mm and "
+                "depth_mm all given; give the missing value, or leave all three empty to have "
+                "the contact estimated from the map")
+        for i, v in enumerate(self.depth_cmd_mm):
+            if np.isfinite(v) and not 0 < v < PAD_THICKNESS_MM:
+                raise MeasuredDataError(
+                    f"{self.source}: field 'depth_mm' of {self._sample(i)} is {v:g} mm, expected a "
+                    f"depth in mm pushed into the gel, > 0 and below the {PAD_THICKNESS_MM:g} mm "
+                    "pad: " + ("depth is positive into the gel; flip the sign of depths "
+                               "recorded as negative z" if v <= 0 else
+                               "depths in um: divide them by 1000"))
         f = self.force_n[np.isfinite(self.force_n)]
         if np.any(f < 0):
             raise MeasuredDataError(f"{self.source}: field 'force_n' has negative forces "
                                     f"({f.min():g} N); forces are compressive, > 0")
-        if self.noise_mm is not None and not (np.isfinite(self.noise_mm) and self.noise_mm >= 0):
-            raise MeasuredDataError(f"{self.source}: field 'noise_mm' must be >= 0, got "
-                                    f"{self.noise_mm}")
+        if self.noise_mm is not None and not (np.isfinite(self.noise_mm) and self.noise_mm > 0):
+            raise MeasuredDataError(f"{self.source}: field 'noise_mm' must be > 0 mm (the pixel "
+                                    f"noise, one sigma; it sets the null threshold), got "
+                                    f"{self.noise_mm}; give the noise measured on repeated "
+                                    "no-contact maps (e.g. 0.005 for 5 um), or leave the field "
+                                    "out to have it estimated from the residual")
+
+    def _sample(self, i: int) -> str:
+        """Sample ``i`` as a message names it (with its row of contacts.csv for a folder)."""
+        row = self.metadata.get("csv_rows")
+        return f"sample {i}" + (f" (contacts.csv row {row[i]})" if row else "")
+
+    def _contact_ids(self, ids: np.ndarray) -> np.ndarray:
+        """``contact_id`` as int64, or MeasuredDataError when its values are not integers."""
+        if ids.dtype.kind in "iu":
+            return ids.astype(np.int64)
+        if ids.dtype.kind == "f":
+            whole = np.isfinite(ids) & (ids == np.round(ids))
+            if whole.all():
+                return ids.astype(np.int64)
+            bad = int(np.argmin(whole))
+        else:
+            bad = 0
+        raise MeasuredDataError(
+            f"{self.source}: field 'contact_id' must be integers (one number per physical contact, "
+            f"shared by its samples), got {ids.dtype} values such as {ids[bad].item()!r} in "
+            f"{self._sample(bad)}; number the contacts 0, 1, 2, ..., or leave the field out "
+            "(every sample its own contact)")
 
     @property
     def n(self) -> int:
@@ -126,12 +187,15 @@ class MeasuredData:
     def subset(self, index) -> MeasuredData:
         """The samples ``index`` (array of ints) as new measured data."""
         idx = np.asarray(index, np.int64)
+        metadata = dict(self.metadata)
+        if "csv_rows" in metadata:
+            metadata["csv_rows"] = [metadata["csv_rows"][i] for i in idx]
         return MeasuredData(
             None if self.depth_mm is None else self.depth_mm[idx],
             None if self.frames is None else self.frames[idx],
             [self.indenter[i] for i in idx], self.x_mm[idx], self.y_mm[idx],
             self.theta_deg[idx], self.depth_cmd_mm[idx], self.force_n[idx],
-            self.contact_id[idx], self.noise_mm, self.source, dict(self.metadata))
+            self.contact_id[idx], self.noise_mm, self.source, metadata)
 
 
 def save_measured(path: str | os.PathLike, data: MeasuredData) -> None:
@@ -148,6 +212,21 @@ def save_measured(path: str | os.PathLike, data: MeasuredData) -> None:
     if data.noise_mm is not None:
         arrays["noise_mm"] = np.float64(data.noise_mm)
     write_npz(path, **arrays)
+
+
+def measured_sha256(path: str | os.PathLike) -> str:
+    """sha256 (hex) of measured data: an .npz file's bytes; for a folder, of every file in it
+    (its path relative to the folder and its bytes' sha256, in sorted order)."""
+    from tactile_deploy.checksums import file_sha256
+
+    path = Path(path)
+    if path.is_file():
+        return file_sha256(path)
+    h = hashlib.sha256()
+    for p in sorted(q for q in path.rglob("*") if q.is_file()):
+        h.update(p.relative_to(path).as_posix().encode("utf-8") + b"\0")
+        h.update(bytes.fromhex(file_sha256(p)))
+    return h.hexdigest()
 
 
 def load_measured(path: str | os.PathLike) -> MeasuredData:
@@ -167,28 +246,54 @@ def load_measured(path: str | os.PathLike) -> MeasuredData:
         raise MeasuredDataError(f"{path}: not a readable .npz file ({e})") from None
     with z:
         keys = set(z.files)
+
+        def read(name):
+            # the arrays load lazily: a field that cannot be read fails here, not at np.load
+            try:
+                return z[name]
+            except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+                # object arrays (pickles), truncated or corrupt members
+                raise MeasuredDataError(
+                    f"{path}: field {name!r} cannot be read ({' '.join(str(e).split())}); save "
+                    "it as a plain array of numbers or strings (no Python objects: "
+                    "np.array(names, dtype=str) for indenter names)") from None
+
         if "indenter" not in keys:
             raise MeasuredDataError(f"{path}: field 'indenter' is missing (one library name or "
                                     "mesh path per sample)")
-        indenter = [str(s) for s in np.atleast_1d(z["indenter"])]
+        names = np.atleast_1d(read("indenter"))
+        if names.dtype.kind not in "US" or names.ndim != 1:
+            raise MeasuredDataError(f"{path}: field 'indenter' must be (N,) strings (one library "
+                                    f"name or mesh path per sample), got {names.shape} "
+                                    f"{names.dtype}; save it as np.array(names, dtype=str)")
+        indenter = [str(s) for s in names]
         n = len(indenter)
 
         def per_sample(name, default=np.nan):
             if name not in keys:
                 return np.full(n, default)
+            arr = read(name)
             try:
-                return np.asarray(z[name], np.float64).reshape(-1)
+                return np.asarray(arr, np.float64).reshape(-1)
             except (TypeError, ValueError):
                 raise MeasuredDataError(f"{path}: field {name!r} must be numbers (NaN where not "
-                                        f"known), got dtype {z[name].dtype}") from None
+                                        f"known), got dtype {arr.dtype}") from None
 
-        noise = float(z["noise_mm"]) if "noise_mm" in keys else None
+        noise = None
+        if "noise_mm" in keys:
+            arr = read("noise_mm")
+            if arr.size != 1 or arr.dtype.kind not in "iuf":
+                raise MeasuredDataError(f"{path}: field 'noise_mm' must be one number (the pixel "
+                                        f"noise, one sigma, mm), got shape {arr.shape} "
+                                        f"{arr.dtype}; save one value for all samples, or leave "
+                                        "the field out to have it estimated")
+            noise = float(arr.reshape(-1)[0])
         return MeasuredData(
-            depth_mm=z["depth"] if "depth" in keys else None,
-            frames=z["frames"] if "frames" in keys else None, indenter=indenter,
+            depth_mm=read("depth") if "depth" in keys else None,
+            frames=read("frames") if "frames" in keys else None, indenter=indenter,
             x_mm=per_sample("x_mm"), y_mm=per_sample("y_mm"), theta_deg=per_sample("theta_deg"),
             depth_cmd_mm=per_sample("depth_mm"), force_n=per_sample("force_n"),
-            contact_id=(np.asarray(z["contact_id"]).reshape(-1) if "contact_id" in keys
+            contact_id=(np.asarray(read("contact_id")).reshape(-1) if "contact_id" in keys
                         else np.arange(n)),
             noise_mm=noise, source=str(path))
 
@@ -244,7 +349,17 @@ def _load_folder(folder: Path) -> MeasuredData:
     if len(shapes) > 1:
         raise MeasuredDataError(f"{table}: frames have different sizes {sorted(shapes)}")
     n = len(rows)
-    ids = (np.array([int(number(r, k, "contact_id")) for k, r in enumerate(rows)])
+
+    def contact_id(row, k):
+        value = number(row, k, "contact_id")
+        if not (np.isfinite(value) and value == round(value)):
+            raise MeasuredDataError(f"{table}, row {k + 2}: column 'contact_id' must be an "
+                                    f"integer, got {(row.get('contact_id') or '').strip()!r}; "
+                                    "give every sample its contact's number, or leave out the "
+                                    "column (every sample its own contact)")
+        return int(value)
+
+    ids = (np.array([contact_id(r, k) for k, r in enumerate(rows)])
            if "contact_id" in cols else np.arange(n))
     return MeasuredData(
         depth_mm=np.stack(depth).astype(np.float32) if depth else None,
@@ -255,4 +370,4 @@ def _load_folder(folder: Path) -> MeasuredData:
         theta_deg=np.array([number(r, k, "theta_deg") for k, r in enumerate(rows)]),
         depth_cmd_mm=np.array([number(r, k, "depth_mm") for k, r in enumerate(rows)]),
         force_n=np.array([number(r, k, "force_n") for k, r in enumerate(rows)]),
-        contact_id=ids, source=str(folder))
+        contact_id=ids, source=str(folder), metadata={"csv_rows": list(range(2, n + 2))})

@@ -13,15 +13,58 @@ Figures (PNG):
 
 from __future__ import annotations
 
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from calibration.discrepancy.verdict import verdict_text
 from calibration.discrepancy.workflow import DiscrepancyResult
-from tactile_deploy.atomic import atomic_path, write_text
+from calibration.outputs import OutputPathError, check_not_input
+from tactile_deploy.atomic import atomic_path, replace_folder, write_text
 
 FIGURES = ("residual_maps.png", "gap_vs_depth_position.png", "candidates.png", "fingerprint.png")
+#: Every file a report folder holds.
+REPORT_FILES = ("report.md", "verdict.json", *FIGURES)
+
+
+def check_report_folder(folder: str | os.PathLike, *, overwrite: bool,
+                        inputs=()) -> Path:
+    """Check, before any work, that ``folder`` (``--report``) may be written: not a file, not an
+    input, its parent folder exists, and an existing non-empty folder only with ``overwrite``
+    and only when it holds a report's files alone (the whole folder is replaced). Raises
+    :class:`~calibration.outputs.OutputPathError` saying what to do."""
+    folder = Path(folder)
+    if folder.name.startswith("-"):
+        raise OutputPathError(f"--report {folder}: that looks like an option, not a folder name; "
+                              "give the folder name right after --report")
+    check_not_input(folder, "--report", inputs)
+    for given in inputs:
+        if given is not None and folder.resolve() in Path(given).resolve().parents:
+            raise OutputPathError(f"--report {folder} holds {given}, an input of this command: "
+                                  "choose another --report (an input is never replaced, even "
+                                  "with --overwrite)")
+    if folder.exists() and not folder.is_dir():
+        raise OutputPathError(f"--report {folder} is a file, not a folder: choose another "
+                              "--report (a folder name)")
+    parent = folder.resolve().parent
+    if not parent.is_dir():
+        raise OutputPathError(f"--report {folder}: folder {parent} does not exist: create it "
+                              "first, or choose another --report")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputPathError(f"--report {folder}: cannot write into {parent}: fix its "
+                              "permissions, or choose another --report")
+    held = sorted(folder.iterdir()) if folder.is_dir() else []
+    if held and not overwrite:
+        raise OutputPathError(f"{folder} exists: pass --overwrite to replace it, or choose "
+                              "another --report")
+    foreign = [p for p in held if p.name not in REPORT_FILES or not p.is_file()]
+    if foreign:
+        raise OutputPathError(f"{folder} holds {foreign[0].name}, which is not part of a "
+                              f"report ({len(foreign)} such entries): --overwrite replaces the "
+                              "whole folder; move them away, or choose another --report")
+    return folder
 
 
 def _save(fig, path: Path) -> None:
@@ -162,10 +205,32 @@ def fingerprint_figure(result: DiscrepancyResult, path: Path) -> None:
     _save(fig, path)
 
 
-def write_report(result: DiscrepancyResult, folder: str | Path) -> list[Path]:
-    """Write the report folder (created if needed); returns the files written."""
+def write_report(result: DiscrepancyResult, folder: str | Path,
+                 overwrite: bool = False) -> list[Path]:
+    """Write the report folder; returns the files written. It is made in a staging folder beside
+    ``folder`` and renamed into place when complete; an existing non-empty ``folder`` is
+    replaced only with ``overwrite`` (else FileExistsError)."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} exists: pass --overwrite to replace it, or choose "
+                              "another --report")
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"--report {folder} is a file, not a folder: choose another "
+                              "--report (a folder name)")
+    staging = folder.parent / f".{folder.name}.partial-{os.getpid()}"
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir()
+    try:
+        _write_report_files(result, staging)
+        replace_folder(staging, folder)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    return [folder / name for name in REPORT_FILES]
+
+
+def _write_report_files(result: DiscrepancyResult, folder: Path) -> None:
     v = result.verdict
     write_text(folder / "verdict.json", v.to_json())
     residual_maps_figure(result, folder / FIGURES[0])
@@ -198,9 +263,9 @@ Measured data: `{result.measured.source}` ({v.n_samples} samples, {v.n_contacts}
 
 ## Candidates
 
-Held-out gain: drop of the squared residual on contacts left out of the fit (5-fold, grouped by
-contact), in units of the pixel noise variance; * = above the effect-free null threshold
-({v.null_threshold:.1f}) with a bootstrap interval above 0.
+Held-out gain: drop of the squared residual on contacts left out of the fit
+({len(result.selection.folds)}-fold, grouped by contact), in units of the pixel noise variance; *
+= above the effect-free null threshold ({v.null_threshold:.1f}) with a bootstrap interval above 0.
 
 {chr(10).join(rows)}
 
@@ -229,4 +294,3 @@ contact), in units of the pixel noise variance; * = above the effect-free null t
 Times: {timings}.
 """
     write_text(folder / "report.md", text)
-    return [folder / "report.md", folder / "verdict.json", *(folder / f for f in FIGURES)]

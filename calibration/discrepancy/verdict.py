@@ -22,7 +22,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -69,15 +69,15 @@ class DiscrepancyVerdict(BaseModel):
 
     model_config = _STRICT
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[2] = FORMAT_VERSION
     verdict: Literal["effect", "none", "unexplained", "ambiguous"]
     effect: str | None = Field(None, description="The named effect (the best of an ambiguous "
                                "group; the best partial candidate when unexplained).")
     parameters: dict[str, float] = Field(default_factory=dict)
     intervals: dict[str, tuple[float, float]] = Field(default_factory=dict)
-    gap_before: float = Field(description="Held-out systematic depth gap of the sensor model, "
-                              "mm.")
-    gap_after: float | None = Field(None, description="The same with the effect added "
+    gap_before_mm: float = Field(description="Held-out systematic depth gap of the sensor "
+                                 "model, mm.")
+    gap_after_mm: float | None = Field(None, description="The same with the effect added "
                                     "(re-simulated exactly), mm.")
     explained_fraction: float | None = Field(None, description="Share of the excess energy "
                                              "the effect removes (exact, held-out).")
@@ -100,8 +100,10 @@ class DiscrepancyVerdict(BaseModel):
     excess_z: float
     null_threshold: float = Field(description="99th percentile of the best held-out gain on "
                                   "effect-free replicates, noise units.")
-    force: dict = Field(default_factory=dict, description="Force gap (relative RMS) before and "
-                        "after, and E refitted to the forces, where forces were measured.")
+    force: dict = Field(default_factory=dict, description="Where forces were measured: "
+                        "n_forces, the force gap before and after (relative RMS, a fraction: "
+                        "gap_before_fraction, gap_after_fraction) and E refitted to the forces "
+                        "(E_before_mpa, E_after_mpa).")
     candidates: list[CandidateReport]
     fingerprint: dict
     sensor: str
@@ -131,9 +133,9 @@ def verdict_text(v: DiscrepancyVerdict) -> str:
              f"verdict: {v.verdict.upper()}  {v.message}"]
     if v.effect and v.verdict in ("effect", "ambiguous"):
         lines.append(f"  {v.effect}: {_fmt_params(v.parameters, v.intervals)}")
-    gap = f"  held-out gap {v.gap_before * 1e3:.2f} um"
-    if v.gap_after is not None:
-        gap += f" -> {v.gap_after * 1e3:.2f} um"
+    gap = f"  held-out gap {v.gap_before_mm * 1e3:.2f} um"
+    if v.gap_after_mm is not None:
+        gap += f" -> {v.gap_after_mm * 1e3:.2f} um"
         if v.explained_fraction is not None:
             gap += f" ({100 * v.explained_fraction:.0f} % of the structure explained)"
     lines.append(gap + f"; confidence {v.confidence:.2f}")
@@ -147,9 +149,9 @@ def verdict_text(v: DiscrepancyVerdict) -> str:
         lines.append("  structure remains after it: apply it and run again")
     if v.force:
         f = v.force
-        lines.append(f"  forces: gap {100 * f['gap_before']:.1f} %"
-                     + (f" -> {100 * f['gap_after']:.1f} %" if f.get("gap_after") is not None
-                        else "")
+        lines.append(f"  forces: gap {100 * f['gap_before_fraction']:.1f} %"
+                     + (f" -> {100 * f['gap_after_fraction']:.1f} %"
+                        if f.get("gap_after_fraction") is not None else "")
                      + f"; E refitted {f['E_before_mpa']:.4g} MPa"
                      + (f" -> {f['E_after_mpa']:.4g} MPa" if f.get("E_after_mpa") else ""))
     lines.append("  candidates (held-out gain in noise units, null threshold "

@@ -410,11 +410,11 @@ def _force_summary(sensor, measured, tables, sample_contact, verification) -> di
     E = sensor.config.material.E_mpa
     f0 = tables.base_force[sample_contact][ok]
     out = {"n_forces": int(ok.sum()),
-           "gap_before": float(np.sqrt(np.mean(((fm[ok] - f0) / fm[ok]) ** 2))),
+           "gap_before_fraction": float(np.sqrt(np.mean(((fm[ok] - f0) / fm[ok]) ** 2))),
            "E_before_mpa": float(E * (fm[ok] @ f0) / max(f0 @ f0, 1e-300))}
     if verification is not None:
         f1 = verification.force_after_n[ok]
-        out["gap_after"] = float(np.sqrt(np.mean(((fm[ok] - f1) / fm[ok]) ** 2)))
+        out["gap_after_fraction"] = float(np.sqrt(np.mean(((fm[ok] - f1) / fm[ok]) ** 2)))
         out["E_after_mpa"] = float(E * (fm[ok] @ f1) / max(f1 @ f1, 1e-300))
     return out
 
@@ -445,7 +445,7 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
                   force=_force_summary(sensor, measured, tables, sample_contact, verification),
                   candidates=reports, fingerprint=finite(fingerprint.summary), sensor=sensor.name,
                   n_samples=measured.n, n_contacts=len(tables.contacts), contacts=contacts,
-                  gap_before=gap_before)
+                  gap_before_mm=gap_before)
     best = selection.best
     if best is None:
         if structure:
@@ -468,7 +468,7 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
     # with a second effect, gap_after and explained are those of both together (the named
     # effect re-simulated exactly, the second from the tables): apply the first, run again
     named = dict(effect=best, parameters=verification.params, intervals=verification.intervals,
-                 gap_after=gap_after, explained_fraction=explained,
+                 gap_after_mm=gap_after, explained_fraction=explained,
                  confidence=bs.best_frequency, remaining_structure=remaining or bool(second),
                  second_effect=second)
     if explained < EXPLAIN_MIN:
