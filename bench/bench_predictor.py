@@ -143,9 +143,10 @@ def main(argv=None) -> int:
         calib = depth
     else:  # maps of the training distribution, as the shipped export calibrates on; never the held-out ones
         from training.config import TrainConfig
-        from training.export import calibration_maps
+        from training.export import calibration_maps, heldout_seed
 
-        calib = calibration_maps(TrainConfig.model_validate(bundle["config"]), depth)
+        calib, _ = calibration_maps(TrainConfig.model_validate(bundle["config"]),
+                                    heldout_seed=heldout_seed(held) if args.run else None)
     sessions, sizes, export_s = {}, {}, {}
     for v in variants:
         t0 = time.perf_counter()

@@ -2,23 +2,56 @@
 
     python -m training train --config runs/small.json [--device cuda]
     torchrun --nproc_per_node 8 -m training train --config runs/big.json --device cuda
-    python -m training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8]
+    python -m training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
     python -m training report-coarsening --data DATA.npz [--png FIGURE.png]
     python -m training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
     python -m training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
     python -m training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
     python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
     python -m training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
+
+A mistake in a config, option or input file ends the command with one ``error: ...`` message and
+exit status 2 (:mod:`training.errors`); nothing is written then.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+
+from training.errors import UsageError, run_command
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    return run_command(lambda: _main(argv))
+
+
+def _check_output_json(path: str, option: str) -> Path:
+    """``path`` may be written as a JSON file (its folder exists, it is not a folder)."""
+    out = Path(path)
+    if out.is_dir():
+        raise UsageError(f"{option} {out} is a folder: give a file name inside it")
+    if out.suffix != ".json" or out.name.startswith("-"):
+        raise UsageError(f"{option} {out}: the file name must end in .json; choose another {option}")
+    if not out.parent.is_dir():
+        raise UsageError(f"{option} {out}: folder {out.parent} does not exist: create it first, or choose another "
+                         f"{option}")
+    return out
+
+
+def _run_folder(path: str, option: str = "--run") -> Path:
+    run = Path(path)
+    if not run.is_dir():
+        raise UsageError(f"{option} {run}: no such folder; give the run_dir of a training run")
+    if not (run / "config.json").is_file():
+        raise UsageError(f"{option} {run} holds no config.json: not a training run folder (python -m training train "
+                         "--config CONFIG.json makes one)")
+    return run
+
+
+def _main(argv: list[str]) -> int:
     if argv[:1] == ["export-adapt"]:
         from training.adaptation.export import main as export_adapt
 
@@ -30,8 +63,14 @@ def main(argv: list[str] | None = None) -> int:
     p_train.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N, auto)")
     p_export = sub.add_parser("export", help="export a trained run to ONNX with its model card")
     p_export.add_argument("--run", required=True, help="run folder holding model.pt and heldout.npz")
-    p_export.add_argument("--out", default="exported/gelslim_mesh.onnx", help="ONNX file to write")
-    p_export.add_argument("--variant", default=None, help="export variant (default: the shipped one)")
+    p_export.add_argument(
+        "--out", default="exported/gelslim_mesh.onnx",
+        help="ONNX file to write, relative to the current folder (default: %(default)s); its model card "
+        "<stem>.json and <stem>.md and, for int8 variants, the fp32 graph <stem>_fp32.onnx go beside it",
+    )
+    p_export.add_argument("--variant", default=None,
+                          help="export variant (default: the shipped one, lean-int8-fastood; see docs/predictor.md)")
+    p_export.add_argument("--overwrite", action="store_true", help="replace an existing --out and its files")
     sub.add_parser("export-adapt", help="export the adaptation step of a bundle (--help for its options)")
     p_rep = sub.add_parser("report-coarsening", help="reconstruction errors of the coarsening hierarchy")
     p_rep.add_argument("--data", required=True, help="npz with displacement_mm (S, n, 3): e.g. a run's heldout.npz")
@@ -63,35 +102,52 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.command == "evaluate":
-        from pathlib import Path
-
         from tactile_deploy.atomic import write_json
         from training.evaluation import DOMAINS, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
-        report = run_evaluation(args.model, args.n, args.seed, domains, Path(args.shared))
-        write_json(args.out, report)
-        print(f"wrote {args.out}")
+        unknown = [d for d in domains if d not in DOMAINS]
+        if unknown:
+            raise UsageError(f"--domains: unknown {', '.join(map(repr, unknown))}; choose among {', '.join(DOMAINS)}")
+        if args.n < 1:
+            raise UsageError(f"--n must be >= 1 (contacts per domain), got {args.n}")
+        if "shared_stl" in domains and not Path(args.shared).is_dir():
+            raise UsageError(f"--shared {args.shared}: no such folder (the shared_stl domain reads its STL indenters "
+                             "there); give the folder, or leave shared_stl out of --domains")
+        out = _check_output_json(args.out, "--out")
+        model = Path(args.model)
+        if not model.is_file():
+            raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m training export)")
+        from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
+
+        try:
+            MeshPredictor(model, warmup=0)
+        except ModelContractError as e:
+            raise UsageError(f"--model {model}: {e}") from None
+        report = run_evaluation(model, args.n, args.seed, domains, Path(args.shared))
+        write_json(out, report)
+        print(f"wrote {out}")
         return 0
 
     if args.command == "heldout":
-        from pathlib import Path
-
         import numpy as np
 
         from tactile_deploy.atomic import write_npz
         from training.config import TrainConfig
         from training.data import fresh_contacts
 
-        cfg = TrainConfig.load(Path(args.run) / "config.json")
+        run = _run_folder(args.run)
+        cfg = TrainConfig.load(run / "config.json")
         if cfg.data.synthetic is None:
-            raise SystemExit(f"{args.run}: the run reads a dataset folder; its held-out split is already on disk")
-        try:
-            data = fresh_contacts(cfg.data.synthetic, args.n, args.seed)
-        except ValueError as exc:
-            raise SystemExit(f"--seed: {exc}") from None
-        write_npz(Path(args.run) / "heldout.npz", depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
-                  indenter=data.indenter, source=np.array(data.source))
+            raise UsageError(f"--run {run}: the run reads a dataset folder; its held-out split is already on disk")
+        if args.n < 1:
+            raise UsageError(f"--n must be >= 1 (contacts), got {args.n}")
+        if args.seed == cfg.data.synthetic.seed or args.seed < 0:
+            raise UsageError(f"--seed {args.seed}: choose a seed >= 0 other than the training seed "
+                             f"{cfg.data.synthetic.seed}, so that no contact is shared")
+        data = fresh_contacts(cfg.data.synthetic, args.n, args.seed)
+        write_npz(run / "heldout.npz", depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
+                  indenter=data.indenter, source=np.array(data.source), seed=np.array(args.seed))
         print(f"wrote {args.run}/heldout.npz: {len(data)} contacts ({data.source})")
         return 0
 
@@ -123,18 +179,42 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     if args.command == "train":
-        from training.config import TrainConfig
-        from training.train import train
+        from training.config import TrainConfig, check_device
 
         cfg = TrainConfig.load(args.config)
         if args.device:
+            try:
+                check_device(args.device)
+            except ValueError as e:
+                raise UsageError(f"--device: {e}") from None
             cfg = cfg.model_copy(update={"device": args.device})
-        train(cfg)
-        return 0
-    from training.export import export_run
+        from training.train import train
 
-    card = export_run(args.run, args.out, variant=args.variant)
-    print(f"wrote {args.out}: parity {card['parity']['max_abs_diff_mm']:.2e} mm")
+        try:
+            train(cfg)
+        except UsageError as e:  # the config's settings: name the file
+            raise UsageError(f"{args.config}: {e}") from None
+        except KeyboardInterrupt:
+            print("interrupted; rerun the same command to resume", file=sys.stderr)
+            return 130
+        return 0
+    from training.export import SHIPPED_VARIANT, check_export, export_run
+
+    variant = args.variant or SHIPPED_VARIANT
+    out = Path(args.out)
+    check_export(args.run, out, variant, args.overwrite)
+    card = export_run(args.run, out, variant=variant, overwrite=args.overwrite)
+    par = card["parity"]
+    files = [out, *([out.with_name(par["graph"])] if par["graph"] != out.name else []),
+             out.with_suffix(".json"), out.with_suffix(".md")]
+    print(f"wrote {', '.join(map(str, files))} (variant {variant})")
+    which = "the fp32 graph" if par["graph"] != out.name else "the shipped fp32 graph"
+    print(f"parity of {which} {par['graph']} vs torch on {par['n_inputs']} held-out maps: max |difference| "
+          f"{par['max_abs_diff_mm']:.2e} mm, ood_score {par['ood_max_abs_diff_mm']:.2e} mm")
+    if "shipped_vs_fp32_max_abs_diff_mm" in par:
+        print(f"shipped int8 graph {out.name} vs {par['graph']}: max |difference| "
+              f"{par['shipped_vs_fp32_max_abs_diff_mm']:.2e} mm, RMS {par['shipped_vs_fp32_rms_diff_mm']:.2e} mm, "
+              f"ood_score {par['shipped_vs_fp32_ood_max_abs_diff_mm']:.2e} mm")
     return 0
 
 

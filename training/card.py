@@ -44,6 +44,10 @@ class ModelCard(_Strict):
     heldout_accuracy: dict = Field(description="The shipped graph on held-out contacts (mm).")
     torch_heldout_metrics: dict = Field(description="Training-time evaluation of both decoders (torch, mm).")
     parity: dict = Field(description="onnxruntime vs torch on held-out depth maps (mm).")
+    int8_calibration: dict | None = Field(
+        None, description="int8 variants: the maps the quantisation was calibrated on ({source, n_maps}); never "
+        "the held-out maps of heldout_accuracy.",
+    )
     ood: dict = Field(description="Held-out quantiles of the reconstruction RMSE (mm) of the ood_score decoder.")
     ood_threshold_mm: float = Field(description="ood_score above this (held-out p99) = outside the training range.")
     limitations: list[str]
@@ -63,12 +67,15 @@ INTENDED_USE = [
 ]
 
 
-def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds) -> dict:
+def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds, graph_file=None,
+               int8_calibration=None) -> dict:
+    """The card of graph ``out`` (its bytes read from ``graph_file``, default ``out``)."""
     from training.export import DEPTH_DOC, FRAME, SENSOR_FAMILY
 
     cfg = bundle["config"]
     m = bundle["metrics"]
     out = Path(out)
+    graph_file = Path(graph_file) if graph_file is not None else out
     card = ModelCard(
         name=out.stem,
         variant=variant,
@@ -83,8 +90,8 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
         frame=FRAME,
         files=FileInfo(
             onnx=out.name,
-            onnx_sha256=hashlib.sha256(out.read_bytes()).hexdigest(),
-            onnx_mb=round(out.stat().st_size / 2**20, 3),
+            onnx_sha256=hashlib.sha256(graph_file.read_bytes()).hexdigest(),
+            onnx_mb=round(graph_file.stat().st_size / 2**20, 3),
             reference_fp32=Path(ref_path).name,
             card_json=out.with_suffix(".json").name,
         ),
@@ -113,6 +120,7 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
             name: {k: v for k, v in d["heldout"].items() if k != "ood"} for name, d in m["decoders"].items()
         },
         parity=parity,
+        int8_calibration=int8_calibration,
         ood=m["ood_lean"] if variant.endswith("-fastood") else m["ood"],
         ood_threshold_mm=ood_threshold,
         limitations=[
@@ -130,11 +138,11 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
 
 
 def write_card(card: dict, json_path: Path, md_path: Path) -> None:
-    from tactile_deploy.atomic import write_json
+    from tactile_deploy.atomic import write_json, write_text
 
     ModelCard.model_validate(card)
     write_json(json_path, card)
-    md_path.write_text(render_markdown(card))
+    write_text(md_path, render_markdown(card))
 
 
 def render_markdown(card: dict) -> str:
@@ -185,6 +193,9 @@ def render_markdown(card: dict) -> str:
             f"- shipped int8 graph vs its fp32 graph: max {par['shipped_vs_fp32_max_abs_diff_mm']:.2e} mm, "
             f"RMS {par['shipped_vs_fp32_rms_diff_mm']:.2e} mm"
         )
+    if card.get("int8_calibration"):
+        cal = card["int8_calibration"]
+        lines.append(f"- int8 calibration: {cal['n_maps']} maps, {cal['source']}")
     lines += [
         f"- `ood_score` of `{par['graph']}` vs torch: max {par['ood_max_abs_diff_mm']:.2e} mm",
         "",

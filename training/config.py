@@ -7,13 +7,23 @@ Lengths in mm.
 
 from __future__ import annotations
 
-import json
+import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from training.errors import UsageError
 
 FORMAT_VERSION = 1
+DEVICE_PATTERN = re.compile(r"cpu|cuda|cuda:\d+|auto")
+
+
+def check_device(name: str) -> str:
+    """``name`` if it is 'cpu', 'cuda', 'cuda:N' or 'auto', else ValueError."""
+    if not isinstance(name, str) or not DEVICE_PATTERN.fullmatch(name):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
+    return name
 
 
 class _Strict(BaseModel):
@@ -218,6 +228,11 @@ class TrainConfig(_Strict):
         "image -> mesh path, image encoder frozen (None: skip). Needs lean_decoder.",
     )
 
+    @field_validator("device")
+    @classmethod
+    def _check_device(cls, v: str) -> str:
+        return check_device(v)
+
     @model_validator(mode="after")
     def _check_stages(self) -> "TrainConfig":
         if self.finetune is not None and self.lean_decoder is None:
@@ -226,8 +241,18 @@ class TrainConfig(_Strict):
 
     @staticmethod
     def load(path: str | Path) -> "TrainConfig":
+        """The config in the JSON file ``path``; :class:`UsageError` naming the file and each bad field."""
+        from tactile_deploy.jsonfile import read_json, validation_error_text
+
         path = Path(path)
+        if not path.is_file():
+            raise UsageError(f"config {path} not found{' (it is a folder)' if path.is_dir() else ''}; "
+                             "give a TrainConfig JSON file (training/configs/ has examples, docs/predictor.md)")
+        doc = read_json(path, UsageError, "a JSON training config")
+        if not isinstance(doc, dict):
+            raise UsageError(f"{path}: expected a JSON object (a training config), got {type(doc).__name__}")
         try:
-            return TrainConfig.model_validate(json.loads(path.read_text()))
-        except FileNotFoundError:
-            raise FileNotFoundError(f"config {path} not found; write one (see docs/predictor.md)") from None
+            return TrainConfig.model_validate(doc)
+        except ValidationError as e:
+            raise UsageError(validation_error_text(
+                path, e, "training config", "fix these fields; training/config.py describes each")) from None

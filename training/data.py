@@ -14,13 +14,16 @@ contact) and whole contacts go to the held-out set, so no press is in both.
 
 from __future__ import annotations
 
+import json
 import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from training.config import DataConfig, SyntheticData
+from training.errors import UsageError
 
 
 @dataclass
@@ -259,18 +262,81 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic batched seed={spec.seed} rank={rank} drawn={drawn}")
 
 
+def cache_spec(spec: SyntheticData, rank: int = 0) -> dict:
+    """What generated data depend on, stored in the cache beside them: every setting of ``spec``
+    (not the envelope bank's file name) and the rank."""
+    doc = spec.model_dump(mode="json")
+    doc.pop("envelope_bank")
+    return {**doc, "rank": rank}
+
+
+def _cache_path(cfg: DataConfig, rank: int, world: int) -> Path | None:
+    if cfg.cache_file is None:
+        return None
+    cache = Path(cfg.cache_file)
+    return cache.with_name(f"{cache.stem}_rank{rank}{cache.suffix}") if world > 1 else cache
+
+
+def check_data(cfg: DataConfig, rank: int = 0, world: int = 1) -> None:
+    """Check the data source before any work: the dataset folder (a complete dataset with a shard
+    for this rank), or a cache file that holds data of these settings. :class:`UsageError` names
+    the config field, what was expected and found, and what to do."""
+    if cfg.dataset_dir is not None:
+        from tactile_deploy.simulation.dataset import load_dataset
+
+        folder = Path(cfg.dataset_dir)
+        if not folder.is_dir():
+            raise UsageError(f"data.dataset_dir {folder}: no such folder; give a dataset folder "
+                             "(tactile-deploy simulate --out FOLDER ...) or data.synthetic")
+        try:
+            _, paths = load_dataset(folder)
+        except (FileNotFoundError, ValueError) as e:
+            raise UsageError(f"data.dataset_dir {folder}: {e}") from None
+        if not paths[rank::world]:
+            raise UsageError(f"data.dataset_dir {folder}: {len(paths)} shards cannot feed rank {rank} of {world}; "
+                             "run fewer ranks or simulate more shards")
+        return
+    _cached_data(cfg, rank, world, read=False)
+
+
+def _cached_data(cfg: DataConfig, rank: int, world: int, read: bool = True) -> ContactData | None:
+    """The data in this rank's cache file when it holds data of ``cfg.synthetic`` (None: no cache,
+    not written yet, or ``read`` False); :class:`UsageError` when it holds other data."""
+    cache = _cache_path(cfg, rank, world)
+    if cache is None or not cache.exists():
+        return None
+    where = f"data.cache_file {cache}"
+    try:
+        with np.load(cache, allow_pickle=False) as d:
+            if "spec" not in d.files:
+                raise UsageError(f"{where} holds no record of the settings its data were made with; delete it (it "
+                                 "is made again), or set another data.cache_file")
+            have, want = json.loads(str(d["spec"])), cache_spec(cfg.synthetic, rank)
+            diff = [k for k in want if have.get(k) != want[k]]
+            if diff:
+                detail = "; ".join(f"{k if k == 'rank' else 'data.synthetic.' + k}: cache {have.get(k)!r}, "
+                                   f"config {want[k]!r}" for k in diff)
+                raise UsageError(f"{where} holds data made with other settings ({detail}); delete it (it is made "
+                                 "again for this config), or set another data.cache_file to keep it")
+            if not read:
+                return None
+            return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]))
+    except UsageError:
+        raise
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise UsageError(f"{where} is not a readable data cache ({type(e).__name__}: {e}); delete it (it is "
+                         "made again), or set another data.cache_file") from None
+
+
 def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> ContactData:
-    """The data of ``rank``: from the dataset folder or generated (and cached if asked)."""
+    """The data of ``rank``: from the dataset folder or generated (and cached if asked; a cache
+    is reused only when it was made with the same settings)."""
     if cfg.dataset_dir is not None:
         return load_dataset_dir(cfg.dataset_dir, rank, world)
-    cache = None
-    if cfg.cache_file is not None:
-        cache = Path(cfg.cache_file)
-        if world > 1:
-            cache = cache.with_name(f"{cache.stem}_rank{rank}{cache.suffix}")
-        if cache.exists():
-            with np.load(cache) as d:
-                return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]))
+    cached = _cached_data(cfg, rank, world)
+    if cached is not None:
+        return cached
+    cache = _cache_path(cfg, rank, world)
     if cfg.synthetic.generator == "batched":
         data = generate_batched(cfg.synthetic, rank, device)
     else:
@@ -282,6 +348,7 @@ def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> Contac
         write_npz(
             cache, depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
             contact_id=data.contact_id, indenter=data.indenter, source=np.array(data.source),
+            spec=np.array(json.dumps(cache_spec(cfg.synthetic, rank), sort_keys=True)),
         )
     return data
 

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from training.errors import UsageError
+
 
 @dataclass(frozen=True)
 class Dist:
@@ -36,11 +38,12 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda"):
         if not torch.cuda.is_available():
-            raise RuntimeError(f"device {name!r} asked for but CUDA is not available; use device 'cpu'")
+            raise UsageError(f"device {name!r} asked for but CUDA is not available; use device 'cpu' "
+                             "(--device cpu, or 'device' in the config)")
         if name == "cuda":
             name = f"cuda:{local_rank}"
     elif name != "cpu":
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
+        raise UsageError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
     return torch.device(name)
 
 

@@ -29,6 +29,7 @@ Variants (``VARIANTS``):
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import json
@@ -39,6 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from training.errors import UsageError
 from training.networks.predictor import Predictor
 
 VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood")
@@ -330,87 +332,187 @@ def torch_reference(model: Predictor, variant: str, depth_mm: np.ndarray, batch:
     return np.concatenate(disp), np.concatenate(oods)
 
 
+def export_files(out: str | Path) -> list[Path]:
+    """The files of an export to ``out``: the graph, its fp32 twin ``<stem>_fp32.onnx`` (int8
+    variants), the model card ``<stem>.json`` and ``<stem>.md``."""
+    out = Path(out)
+    return [out, out.with_name(out.stem + "_fp32.onnx"), out.with_suffix(".json"), out.with_suffix(".md")]
+
+
+def check_export(run_dir: str | Path, out: str | Path, variant: str, overwrite: bool = False) -> None:
+    """Check a run export before any work (:class:`UsageError` naming the option and what to do):
+    a known variant, a run folder with model.pt and heldout.npz, an ``.onnx`` --out whose files
+    (:func:`export_files`) are replaced only with ``overwrite``."""
+    run_dir, out = Path(run_dir), Path(out)
+    if variant not in VARIANTS:
+        raise UsageError(f"--variant {variant!r} is not a variant; choose one of {', '.join(VARIANTS)}")
+    if not run_dir.is_dir():
+        raise UsageError(f"--run {run_dir}: no such folder; give the run_dir of a training run")
+    for name in ("model.pt", "heldout.npz"):
+        if not (run_dir / name).is_file():
+            raise UsageError(f"--run {run_dir} holds no {name}: give a finished training run (python -m training "
+                             "train --config CONFIG.json writes both)")
+    if out.suffix != ".onnx" or out.name.startswith("-"):
+        raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
+                         f"{out.stem}.json and .md); choose another --out")
+    if out.is_dir():
+        raise UsageError(f"--out {out} is a folder: give a file name inside it")
+    if out.parent.exists() and not out.parent.is_dir():
+        raise UsageError(f"--out {out}: {out.parent} is not a folder; choose another --out")
+    existing = [p for p in export_files(out) if p.exists()]
+    if existing and not overwrite:
+        raise UsageError(f"--out {out}: {', '.join(str(p) for p in existing)} exist"
+                         f"{'s' if len(existing) == 1 else ''}: pass --overwrite to replace the set, or choose "
+                         "another --out")
+
+
+def heldout_seed(held) -> int | None:
+    """The generator seed of a run's heldout.npz written by ``python -m training heldout`` (None:
+    the held-out split of the training data)."""
+    if "seed" in held:
+        return int(held["seed"])
+    if "source" in held:
+        import re
+
+        m = re.search(r"seed=(\d+)", str(held["source"]))
+        return int(m.group(1)) if m else None
+    return None
+
+
 def export_run(
-    run_dir: str | Path, out: str | Path, variant: str | None = None, n_parity: int = 128, optimize: bool = True
+    run_dir: str | Path, out: str | Path, variant: str | None = None, n_parity: int = 128, optimize: bool = True,
+    overwrite: bool = False,
 ) -> dict:
     """Export a trained run: the shipped graph ``out``, the fp32 graph of the same weights
     (``<stem>_fp32.onnx``, when the shipped one is int8) and the model card (``<stem>.json``,
-    ``<stem>.md``). Returns the card."""
+    ``<stem>.md``). Returns the card.
+
+    Existing files of the set are replaced only with ``overwrite``. Everything is written to
+    temporary names beside ``out`` and renamed into place at the end: an interrupted export
+    leaves the previous set as it was."""
+    import os
+
     from training.card import build_card, write_card
     from training.train import load_bundle
 
     run_dir, out = Path(run_dir), Path(out)
     variant = variant or SHIPPED_VARIANT
+    check_export(run_dir, out, variant, overwrite)
     _, is_int8, ood = variant_parts(variant)
     model, bundle = load_bundle(run_dir / "model.pt")
-    held = np.load(run_dir / "heldout.npz")
-    depth = held["depth_mm"][:, None].astype(np.float32)
-    true = held["displacement_mm"]
+    with np.load(run_dir / "heldout.npz") as held:
+        depth = held["depth_mm"][:, None].astype(np.float32)
+        true = held["displacement_mm"]
+        held_seed = heldout_seed(held)
     t0 = time.perf_counter()
-    calibration = _calibration_maps(run_dir, depth) if is_int8 else None
-    export_variant(model, variant, out, calibration, optimize)
-    fp32_variant = fp32_twin(variant)
-    ref_path = out.with_name(out.stem + "_fp32.onnx") if variant != fp32_variant else out
-    if ref_path != out:
-        export_variant(model, fp32_variant, ref_path, optimize=optimize)
+    calibration, calibration_info = None, None
+    if is_int8:
+        from training.config import TrainConfig
 
-    # parity of the fp32 graph with torch, int8 against fp32, accuracy of the shipped graph
-    k = min(n_parity, len(depth))
-    ref_disp, ref_ood = torch_reference(model, variant, depth[:k])
-    _, fp32_disp, fp32_ood = run_session(make_session(ref_path), depth[:k])
-    parity = {
-        "graph": ref_path.name,
-        "n_inputs": k,
-        "max_abs_diff_mm": float(np.abs(fp32_disp - ref_disp).max()),
-        "ood_max_abs_diff_mm": float(np.abs(fp32_ood - ref_ood).max()),
-    }
-    _, final, final_ood = run_session(make_session(out), depth)
-    if ref_path != out:
-        parity["shipped_vs_fp32_max_abs_diff_mm"] = float(np.abs(final[:k] - fp32_disp).max())
-        parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final[:k] - fp32_disp) ** 2)))
-        parity["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(final_ood[:k] - fp32_ood).max())
-    err = (final - true).astype(np.float64)
-    accuracy = {
-        "n_samples": int(len(depth)),
-        "vertex_rmse_mm": float(np.sqrt(np.mean(err**2))),
-        "relative_error": float(np.linalg.norm(err) / np.linalg.norm(true)),
-        "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
-        "ood_score_p99_mm": float(np.quantile(final_ood, 0.99)),
-    }
-    ood_threshold = float(bundle["metrics"]["ood_lean" if ood == "lean" else "ood"]["recon_rmse_mm_p99"])
-    card = build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, time.perf_counter() - t0)
-    props = card_metadata(card)
-    for p in {out, ref_path}:
-        write_metadata(p, props | {"variant": variant if p == out else fp32_variant})
-    card = build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, time.perf_counter() - t0)
-    write_card(card, out.with_suffix(".json"), out.with_suffix(".md"))
+        calibration, calibration_info = calibration_maps(TrainConfig.model_validate(bundle["config"]), heldout_seed=held_seed)
+    fp32_variant = fp32_twin(variant)
+    final = export_files(out)
+    ref_path = final[1] if variant != fp32_variant else out
+    writes = [out, *([ref_path] if ref_path != out else []), final[2], final[3]]
+    tmp = {p: p.with_name(f".{p.stem}.{os.getpid()}.partial{p.suffix}") for p in writes}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        export_variant(model, variant, tmp[out], calibration, optimize)
+        if ref_path != out:
+            export_variant(model, fp32_variant, tmp[ref_path], optimize=optimize)
+
+        # parity of the fp32 graph with torch, int8 against fp32, accuracy of the shipped graph
+        k = min(n_parity, len(depth))
+        ref_disp, ref_ood = torch_reference(model, variant, depth[:k])
+        _, fp32_disp, fp32_ood = run_session(make_session(tmp[ref_path]), depth[:k])
+        parity = {
+            "graph": ref_path.name,
+            "n_inputs": k,
+            "max_abs_diff_mm": float(np.abs(fp32_disp - ref_disp).max()),
+            "ood_max_abs_diff_mm": float(np.abs(fp32_ood - ref_ood).max()),
+        }
+        _, final_disp, final_ood = run_session(make_session(tmp[out]), depth)
+        if ref_path != out:
+            parity["shipped_vs_fp32_max_abs_diff_mm"] = float(np.abs(final_disp[:k] - fp32_disp).max())
+            parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final_disp[:k] - fp32_disp) ** 2)))
+            parity["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(final_ood[:k] - fp32_ood).max())
+        err = (final_disp - true).astype(np.float64)
+        accuracy = {
+            "n_samples": int(len(depth)),
+            "vertex_rmse_mm": float(np.sqrt(np.mean(err**2))),
+            "relative_error": float(np.linalg.norm(err) / np.linalg.norm(true)),
+            "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
+            "ood_score_p99_mm": float(np.quantile(final_ood, 0.99)),
+        }
+        ood_threshold = float(bundle["metrics"]["ood_lean" if ood == "lean" else "ood"]["recon_rmse_mm_p99"])
+
+        def card_now() -> dict:
+            return build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold,
+                              time.perf_counter() - t0, graph_file=tmp[out], int8_calibration=calibration_info)
+
+        props = card_metadata(card_now())
+        for p in {out, ref_path}:
+            write_metadata(tmp[p], props | {"variant": variant if p == out else fp32_variant})
+        card = card_now()
+        write_card(card, tmp[final[2]], tmp[final[3]])
+        with _signals_held():  # the new set into place (the twin of an older int8 export goes), not half
+            for p in writes:
+                os.replace(tmp[p], p)
+            if ref_path == out:
+                final[1].unlink(missing_ok=True)
+    finally:
+        for t in tmp.values():
+            t.unlink(missing_ok=True)
     return card
 
 
-def _calibration_maps(run_dir: Path, fallback: np.ndarray, n: int = 256) -> np.ndarray:
-    """Depth maps of the training distribution for int8 calibration of the run in ``run_dir``."""
-    from training.config import TrainConfig
+@contextlib.contextmanager
+def _signals_held():
+    """Hold SIGINT and SIGTERM back (delivered on exit) where the platform allows it."""
+    import signal
 
-    cfg = TrainConfig.model_validate(json.loads((run_dir / "config.json").read_text()))
-    return calibration_maps(cfg, fallback, n)
+    held = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def calibration_maps(cfg, fallback: np.ndarray, n: int = 256) -> np.ndarray:
+def calibration_maps(cfg, n: int = 256, heldout_seed: int | None = None) -> tuple[np.ndarray, dict]:
     """Depth maps (n, 1, R, R) mm of the training distribution for int8 calibration, never the
-    held-out maps used for accuracy: ``n`` maps of the run's dataset folder, or ``n`` fresh
-    contacts of its synthetic generator (another seed, simulated on the CPU)."""
+    held-out maps used for accuracy, and where they came from ({"source", "n_maps"}): ``n`` maps
+    of the training split of the run's dataset folder, or ``n`` fresh contacts of its synthetic
+    generator (another seed than the training one and ``heldout_seed``, simulated on the CPU).
+    A dataset folder that cannot be read is a :class:`UsageError`."""
     from training.data import fresh_contacts, load, split_by_contact
 
     if cfg.data.synthetic is not None:
-        return fresh_contacts(cfg.data.synthetic, n, cfg.data.synthetic.seed + 1_000).depth_mm[:, None].astype(np.float32)
+        spec = cfg.data.synthetic
+        seed = spec.seed + 1_000
+        if seed == heldout_seed:
+            seed += 1_000
+        maps = fresh_contacts(spec, n, seed).depth_mm[:, None].astype(np.float32)
+        held = f"seed {heldout_seed}" if heldout_seed is not None else "the split of the training data"
+        return maps, {"source": f"fresh contacts of the run's synthetic generator, seed {seed} (training: seed "
+                                f"{spec.seed}; held-out maps: {held})", "n_maps": len(maps)}
     try:
         data = load(cfg.data)
-    except (FileNotFoundError, ValueError):
-        return fallback[:n]
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(
+            f"int8 calibration reads training maps from the run's data.dataset_dir {cfg.data.dataset_dir}, which "
+            f"cannot be read ({e}); put the dataset back there, or export an fp32 variant "
+            f"(--variant {fp32_twin(SHIPPED_VARIANT)})"
+        ) from None
     tr, _ = split_by_contact(data.contact_id, cfg.data.val_fraction, cfg.data.split_seed)
     rng = np.random.default_rng(0)
     pick = rng.choice(tr, size=min(n, len(tr)), replace=False)
-    return data.depth_mm[pick][:, None].astype(np.float32)
+    return data.depth_mm[pick][:, None].astype(np.float32), {
+        "source": f"training split of {cfg.data.dataset_dir} (data.split_seed {cfg.data.split_seed}; no held-out contact)",
+        "n_maps": len(pick)}
 
 
 def card_metadata(card: dict) -> dict[str, str]:

@@ -14,7 +14,8 @@ Data flow of :func:`train`::
 
 Every stage uses Adam (``lr``) with the learning rate multiplied by ``lr_decay`` after each epoch,
 checkpoints after every epoch (``run_dir/checkpoints/<stage>.pt``) and resumes from there: a
-finished stage is skipped when the same run is started again.
+finished stage is skipped when the same run is started again. A run folder trained with other
+settings is refused (:func:`check_resume`); ``config.json`` is written once the config is accepted.
 """
 
 from __future__ import annotations
@@ -29,15 +30,21 @@ from typing import Callable
 import numpy as np
 import torch
 
+from tactile_deploy.atomic import atomic_path, write_json, write_npz, write_text
 from training import distributed
 from training.config import StageConfig, TrainConfig
-from training.data import ContactData, Scales, compute_scales, load, split_by_contact
+from training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
+from training.errors import UsageError
 from training.networks.coarsening import build_hierarchy
 from training.networks.image_vae import vae_loss
 from training.networks.predictor import Predictor
 
 BUNDLE_FORMAT = 1
 STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder", "finetune")
+#: Settings that may change when a run is started again: they change neither the data nor any
+#: trained weight. A stage's ``epochs`` and ``time_budget_s`` may also change while the stage is
+#: not complete, and every setting of a stage not started yet.
+RESUME_FREE = ("run_dir", "device", "threads", "eval_max_samples", "data.cache_file", "data.synthetic.envelope_bank")
 
 
 def git_commit(repo: Path | None = None) -> dict:
@@ -172,9 +179,8 @@ def run_stage(
                 "scheduler": sched.state_dict(), "history": history, "epoch": epoch + 1,
                 "stopped_by_time_budget": over_budget,
             }
-            tmp = ckpt.with_suffix(".partial")
-            torch.save(state, tmp)
-            tmp.replace(ckpt)
+            with atomic_path(ckpt) as tmp:
+                torch.save(state, tmp)
         if distributed.reduce_sum(np.array([float(over_budget)]), dist, device)[0] > 0:  # all ranks stop together
             break
     return history
@@ -261,6 +267,91 @@ def encode_latents(model: Predictor, tensors) -> None:
         t.z_mesh_logvar = torch.cat([e[1] for e in enc])
 
 
+def _differences(old, new, prefix: str = ""):
+    """(dotted key, old value, new value) of every difference of two JSON documents (a section
+    present on one side only is one difference)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for k in list(old) + [k for k in new if k not in old]:
+            yield from _differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)
+    elif old != new:
+        yield prefix, old, new
+
+
+def _stage_progress(run_dir: Path) -> dict[str, tuple[int, bool]]:
+    """{stage: (epochs run, stopped by its time budget)} of the stages with a checkpoint in ``run_dir``."""
+    out = {}
+    for name in STAGES:
+        ckpt = run_dir / "checkpoints" / f"{name}.pt"
+        if ckpt.is_file():
+            state = torch.load(ckpt, map_location="cpu", weights_only=False)
+            out[name] = (int(state["epoch"]), bool(state.get("stopped_by_time_budget", False)))
+    return out
+
+
+def check_resume(cfg: TrainConfig, run_dir: Path) -> None:
+    """Refuse to start ``cfg`` in a run folder trained with other settings (:class:`UsageError`
+    naming each differing field): a run resumes only with the same model, data and seed and the
+    same settings of every stage already started, but ``epochs`` and ``time_budget_s`` of a stage
+    not complete (never fewer epochs than it has run); :data:`RESUME_FREE` may always change."""
+    from pydantic import ValidationError
+
+    from tactile_deploy.jsonfile import read_json, validation_error_text
+
+    if run_dir.exists() and not run_dir.is_dir():
+        raise UsageError(f"run_dir {run_dir} is a file, not a folder: choose another run_dir")
+    progress = _stage_progress(run_dir)
+    trained = bool(progress) or (run_dir / "model.pt").exists()
+    saved_path = run_dir / "config.json"
+    way_out = f"choose another run_dir, or delete {run_dir} to train from scratch"
+    if not saved_path.is_file():
+        if trained:
+            raise UsageError(f"run_dir {run_dir} holds trained weights but no config.json, so it cannot be "
+                             f"resumed: {way_out}")
+        return
+    if not trained:  # nothing was trained yet: any setting may change
+        return
+    doc = read_json(saved_path, UsageError, "the run's saved training config")
+    try:
+        saved = TrainConfig.model_validate(doc)
+    except ValidationError as e:
+        raise UsageError(validation_error_text(saved_path, e, "saved training config",
+                                               f"the run cannot be resumed: {way_out}")) from None
+    problems = []
+    for key, was_value, value in _differences(saved.model_dump(mode="json"), cfg.model_dump(mode="json")):
+        if key in RESUME_FREE:
+            continue
+        top, _, field = key.partition(".")
+        was = f"run {json.dumps(was_value)}, config {json.dumps(value)}"
+        if top in STAGES:
+            if top not in progress:
+                continue  # the stage has not started: its settings are free
+            run, stopped = progress[top]
+            stage = getattr(saved, top)
+            complete = stopped or (stage is not None and run >= stage.epochs)
+            if field in ("epochs", "time_budget_s") and not complete:
+                if field == "epochs" and value < run:
+                    problems.append(f"{key}: {was}, but {run} epochs have run")
+                continue
+            state = "complete" if complete else f"started ({run} epochs run)"
+            problems.append(f"{key}: {was} (stage {top} is {state})")
+        else:
+            problems.append(f"{key}: {was}")
+    if problems:
+        raise UsageError(
+            f"run_dir {run_dir} holds a run trained with other settings ({saved_path}): " + "; ".join(problems)
+            + f". A run resumes only with the same model, data and seed and the same settings of its started "
+            f"stages (epochs and time_budget_s of an unfinished stage may change): {way_out}"
+        )
+
+
+def _remove_partials(run_dir: Path) -> None:
+    """Delete temporary files an interrupted write left in ``run_dir`` (never read)."""
+    for pattern in (".*.partial*", "checkpoints/.*.partial*", "checkpoints/*.partial"):
+        for p in run_dir.glob(pattern):
+            if p.is_file():
+                p.unlink(missing_ok=True)
+
+
 def _freeze(module: torch.nn.Module) -> None:
     module.eval()
     for p in module.parameters():
@@ -278,9 +369,12 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
     run_dir = Path(cfg.run_dir)
+    check_resume(cfg, run_dir)
+    check_data(cfg.data, dist.rank, dist.world)
     if dist.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
+        _remove_partials(run_dir)
+        write_text(run_dir / "config.json", json.dumps(cfg.model_dump(mode="json"), indent=2))
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
 
@@ -418,16 +512,15 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             "git": git_commit(),
             "created_unix": time.time(),
         }
-        torch.save(bundle, run_dir / "model.pt")
+        with atomic_path(run_dir / "model.pt") as tmp:
+            torch.save(bundle, tmp)
         n_keep = min(len(val_data), 512)
-        from tactile_deploy.atomic import write_json, write_npz
-
         write_npz(
             run_dir / "heldout.npz", depth_mm=val_data.depth_mm[:n_keep],
             displacement_mm=val_data.displacement_mm[:n_keep], indenter=val_data.indenter[:n_keep],
         )
         write_json(run_dir / "metrics.json", metrics)
-        (run_dir / "history.json").write_text(json.dumps(hist, indent=1))
+        write_text(run_dir / "history.json", json.dumps(hist, indent=1))
         plot_curves(hist, run_dir / "learning_curves.png")
     distributed.barrier(dist)
     return metrics
@@ -518,19 +611,29 @@ def plot_curves(history: dict, path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
 def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]:
     """Rebuild the trained predictor from ``model.pt`` (checks the pad mesh hash)."""
-    bundle = torch.load(path, map_location=device, weights_only=False)
-    if bundle.get("format_version") != BUNDLE_FORMAT:
-        raise ValueError(f"{path}: bundle format {bundle.get('format_version')} is not {BUNDLE_FORMAT}")
+    if not Path(path).is_file():
+        raise UsageError(f"training bundle {path} not found; train a run first (python -m training train "
+                         "--config CONFIG.json) or give its model.pt")
+    try:
+        bundle = torch.load(path, map_location=device, weights_only=False)
+    except Exception as e:  # torch raises several types for damaged or foreign files
+        raise UsageError(f"{path}: not a training bundle (torch cannot read it: {type(e).__name__}: {e}); give "
+                         "the model.pt of a training run") from None
+    if not isinstance(bundle, dict) or bundle.get("format_version") != BUNDLE_FORMAT:
+        got = bundle.get("format_version") if isinstance(bundle, dict) else type(bundle).__name__
+        raise UsageError(f"{path}: bundle format {got} is not {BUNDLE_FORMAT}; give the model.pt of a training "
+                         "run of this version")
     cfg = TrainConfig.model_validate(bundle["config"])
     model = build_model(cfg)
     if model.mesh_vae.graphs.hierarchy.mesh_hash != bundle["mesh_hash"]:
-        raise ValueError(
+        raise UsageError(
             f"{path} was trained on pad mesh {bundle['mesh_hash'][:12]}..., the shipped pad is "
             f"{model.mesh_vae.graphs.hierarchy.mesh_hash[:12]}...; retrain for this pad"
         )

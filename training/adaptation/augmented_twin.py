@@ -157,7 +157,7 @@ def main(argv=None) -> int:
         from training.export import export_run
 
         onnx = args.out / "gelslim_mesh.onnx"
-        export_run(args.out, onnx)
+        export_run(args.out, onnx, overwrite=True)  # the run was just trained again in --out
         export_step(args.out / "model.pt", onnx, args.out / "gelslim_mesh_adapt")
     print(json.dumps(metrics["decoders"]["lean"], indent=1, default=float)[:2000])
     return 0

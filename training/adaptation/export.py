@@ -40,6 +40,7 @@ from tactile_deploy.adapt.card import (
     render_markdown,
 )
 from training.adaptation.step import AdaptationStep, VAEFilter
+from training.errors import UsageError
 
 DEFAULTS = {"lr": 1e-4, "batch_size": 16.0, "steps": 200.0}
 
@@ -60,8 +61,8 @@ def fp32_graph_of(family_onnx: Path) -> Path:
         return twin
     model = onnx.load(str(family_onnx))
     if any(n.op_type in ("QuantizeLinear", "DequantizeLinear") for n in model.graph.node):
-        raise FileNotFoundError(f"{family_onnx} is quantised and its fp32 graph {twin} is missing; export the "
-                                "model again (python -m training export) or pass --fp32")
+        raise UsageError(f"{family_onnx} is quantised and its fp32 graph {twin} is missing; export the "
+                         "model again (python -m training export) or pass --fp32")
     return family_onnx
 
 
@@ -92,8 +93,9 @@ def map_parameters(step: AdaptationStep, fp32_model) -> list[ParameterMapping]:
             if found:
                 break
         if found is None:
-            raise ValueError(f"no initializer of the fp32 graph holds parameter {name!r} {p.shape}: the ONNX "
-                             "graph was not exported from this bundle")
+            raise UsageError(f"no initializer of the fp32 graph holds parameter {name!r} {p.shape}: the ONNX "
+                             "graph was not exported from this bundle; give the --onnx (and --fp32) exported from "
+                             "it (python -m training export --run RUN), or its --bundle")
         out.append(found)
     return out
 
@@ -124,22 +126,51 @@ def _onnx_session(path: Path):
 
 def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, filter_kind: str = "vae",
                 fp32_onnx: str | Path | None = None, log=print) -> AdaptationCard:
-    """Write the step folder ``out`` (module docstring) for ``bundle`` and its family ONNX model."""
+    """Write the step folder ``out`` (module docstring) for ``bundle`` and its family ONNX model.
+
+    The folder is built beside ``out`` and swapped in at the end (an existing step folder is
+    replaced only then, never left half-written); a folder that is not a step folder is refused."""
+    import os
+    import shutil
+
+    from tactile_deploy.atomic import replace_folder
+    from training.train import load_bundle
+
+    bundle, family_onnx, out = Path(bundle), Path(family_onnx), Path(out)
+    if bundle.is_dir():
+        bundle = bundle / "model.pt"
+    for option, path in (("--onnx", family_onnx), ("--fp32", fp32_onnx)):
+        if path is not None and not Path(path).is_file():
+            raise UsageError(f"{option} {path}: no such file; give the graph exported from the bundle "
+                             "(python -m training export --run RUN)")
+    if out.exists() and not (out.is_dir() and ((out / CARD_FILE).is_file() or not any(out.iterdir()))):
+        raise UsageError(f"--out {out} exists and is not an adaptation step folder (no {CARD_FILE}), so it is not "
+                         "replaced: choose another --out")
+    model, meta = load_bundle(bundle)
+    fp32 = Path(fp32_onnx) if fp32_onnx is not None else fp32_graph_of(family_onnx)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.staging-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        card = _write_step(model, meta, bundle, family_onnx, fp32, staging, out, filter_kind, log)
+        replace_folder(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return card
+
+
+def _write_step(model, meta, bundle: Path, family_onnx: Path, fp32: Path, out: Path, final: Path, filter_kind: str,
+                log) -> AdaptationCard:
+    """The files of step folder ``final``, written into the folder ``out`` beside it."""
     import onnx
 
     from tactile_deploy.adapt.step import StepProgram
     from tactile_deploy.adapt.weights import write_adapted_onnx
     from tactile_deploy.atomic import atomic_path, write_json, write_text
     from training.export import OPSET, _onnx_export, int8_nodes, run_session
-    from training.train import load_bundle
 
     t0 = time.perf_counter()
-    bundle, family_onnx, out = Path(bundle), Path(family_onnx), Path(out)
-    if bundle.is_dir():
-        bundle = bundle / "model.pt"
-    model, meta = load_bundle(bundle)
-    fp32 = Path(fp32_onnx) if fp32_onnx is not None else fp32_graph_of(family_onnx)
-    out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
     step = AdaptationStep(model).train()
     fp32_model = onnx.load(str(fp32))
@@ -155,8 +186,8 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
     _, onnx_disp, _ = run_session(_onnx_session(fp32), depth)
     graph_diff = float(np.abs(onnx_disp - ref).max())
     if graph_diff > 1e-4:
-        raise ValueError(f"{fp32} differs from the bundle's step by {graph_diff:.3g} mm: it was not exported "
-                         f"from {bundle}")
+        raise UsageError(f"{fp32} differs from the bundle's step by {graph_diff:.3g} mm: it was not exported "
+                         f"from {bundle}; give the --onnx (and --fp32) exported from it, or its --bundle")
     log(f"fp32 graph vs step: {graph_diff:.2e} mm")
 
     # 2. the step program (train mode, dynamic batch) and the filter graph
@@ -178,7 +209,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
     def rel(p: Path) -> str:
         import os
 
-        return Path(os.path.relpath(p.resolve(), out.resolve())).as_posix()
+        return Path(os.path.relpath(p.resolve(), final.resolve())).as_posix()
 
     files = {"step": {"path": STEP_FILE, "sha256": _sha(out / STEP_FILE)},
              "filter": {"path": FILTER_FILE, "sha256": _sha(out / FILTER_FILE)},
@@ -187,7 +218,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
              "source_bundle": {"path": rel(bundle), "sha256": _sha(bundle)}}
     pad_n = int(step.displacement_scale_mm.shape[0])
     card_doc = {
-        "name": out.name,
+        "name": final.name,
         "description": (
             "Self-supervised adaptation step of the image-to-mesh model (Zhu et al., 'Self-Supervised "
             "Adaptation'): the predicted mesh's sensing surface is rendered to a depth map by a "
@@ -261,7 +292,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
         "rewrite_check_displacement_change_mm": moved}})
     write_json(out / CARD_FILE, card.model_dump(mode="json"))
     write_text(out / CARD_MD, render_markdown(card))
-    log(f"wrote {out} in {time.perf_counter() - t0:.1f} s: program vs eager {program_diff:.2e}, rewritten ONNX vs "
+    log(f"wrote {final} in {time.perf_counter() - t0:.1f} s: program vs eager {program_diff:.2e}, rewritten ONNX vs "
         f"step {rewrite_diff:.2e} mm (weights moved the mesh by {moved:.3g} mm)")
     return card
 
@@ -271,9 +302,11 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m training export-adapt", description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", required=True, help="training bundle (model.pt, or its run folder)")
-    ap.add_argument("--onnx", default="exported/gelslim_mesh.onnx", help="the family model exported from it")
+    ap.add_argument("--onnx", default="exported/gelslim_mesh.onnx",
+                    help="the family model exported from it (default: %(default)s, relative to the current folder)")
     ap.add_argument("--fp32", default=None, help="its fp32 graph (default: <onnx stem>_fp32.onnx)")
-    ap.add_argument("--out", default=None, help="step folder (default: <onnx stem>_adapt beside the model)")
+    ap.add_argument("--out", default=None, help="step folder (default: <onnx stem>_adapt beside the model); an "
+                    "existing step folder is replaced once the new one is complete")
     ap.add_argument("--filter", default="vae", choices=["vae", "lean"], help="decoder of the VAE filter")
     args = ap.parse_args(argv)
     onnx_path = Path(args.onnx)

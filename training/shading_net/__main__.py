@@ -2,6 +2,8 @@
 
 import sys
 
+from training.errors import run_command
+
 from .train import main
 
-sys.exit(main())
+sys.exit(run_command(main))

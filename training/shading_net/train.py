@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import platform
 import time
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -114,6 +116,61 @@ def export_onnx(net, out: Path, metadata: dict) -> None:
         onnx.save(model, str(tmp))
 
 
+def _cache_spec(args) -> dict:
+    """What the crops of ``--data-cache`` depend on (stored in it, checked when it is reused)."""
+    return {"design": args.design, "units": args.units, "presses": args.presses, "seed": args.seed,
+            "crop_cells": CROP_CELLS, "jitter_cells": JITTER_CELLS}
+
+
+def _check_args(args) -> None:
+    """Check every option before any work (:class:`training.errors.UsageError`)."""
+    from training.errors import UsageError
+
+    for option, value, low in (("--units", args.units, 1), ("--presses", args.presses, 1), ("--epochs", args.epochs, 1),
+                               ("--width", args.width, 1), ("--seed", args.seed, 0)):
+        if value < low:
+            raise UsageError(f"{option} must be >= {low}, got {value}")
+    if args.threads is not None and args.threads < 1:
+        raise UsageError(f"--threads must be >= 1, got {args.threads}")
+    if not (np.isfinite(args.gradient_clip) and args.gradient_clip > 0):
+        raise UsageError(f"--gradient-clip must be a number > 0 (mm per mm), got {args.gradient_clip}")
+    if not (np.isfinite(args.gradient_weight) and args.gradient_weight >= 0):
+        raise UsageError(f"--gradient-weight must be a number >= 0, got {args.gradient_weight}")
+    from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
+    from tactile_deploy.sensors.config import SensorConfigError
+
+    try:
+        sensor_config(args.design)
+    except (UnknownSensorError, SensorConfigError, FileNotFoundError) as e:
+        raise UsageError(f"--design: {e}") from None
+    out = args.out
+    if out.suffix != ".onnx" or out.name.startswith("-"):
+        raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
+                         f"{out.stem}.json); choose another --out")
+    if out.is_dir():
+        raise UsageError(f"--out {out} is a folder: give a file name inside it")
+    existing = [p for p in (out, out.with_suffix(".json")) if p.exists()]
+    if existing and not args.overwrite:
+        raise UsageError(f"--out {out}: {' and '.join(map(str, existing))} exist{'s' if len(existing) == 1 else ''}: "
+                         "pass --overwrite to replace, or choose another --out")
+    cache = args.data_cache
+    if cache is not None and cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                have = json.loads(str(z["spec"])) if "spec" in z.files else None
+        except (OSError, ValueError, zipfile.BadZipFile) as e:
+            raise UsageError(f"--data-cache {cache} is not a readable crop cache ({type(e).__name__}: {e}); delete "
+                             "it (it is made again), or give another --data-cache") from None
+        if have is None:
+            raise UsageError(f"--data-cache {cache} holds no record of the settings its crops were made with; delete "
+                             "it (it is made again), or give another --data-cache")
+        want = _cache_spec(args)
+        diff = [f"{k}: cache {have.get(k)!r}, now {v!r}" for k, v in want.items() if have.get(k) != v]
+        if diff:
+            raise UsageError(f"--data-cache {cache} holds crops made with other settings ({'; '.join(diff)}); give "
+                             "the same options, delete it (it is made again), or give another --data-cache")
+
+
 def main(argv=None) -> int:
     from tactile_deploy.imaging import learned_readout as lr_mod
 
@@ -121,21 +178,28 @@ def main(argv=None) -> int:
     from .family import Tolerances, family_configs
 
     ap = argparse.ArgumentParser(prog="python -m training.shading_net", description=__doc__.splitlines()[0])
-    ap.add_argument("--design", default="gelslim1", help="virtual sensor whose design the units share")
-    ap.add_argument("--units", type=int, default=8, help="virtual units of the design")
-    ap.add_argument("--presses", type=int, default=1000, help="presses per unit")
-    ap.add_argument("--epochs", type=int, default=60)
-    ap.add_argument("--width", type=int, default=8, help="base channels of the U-Net")
-    ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--design", default="gelslim1",
+                    help="virtual sensor whose design the units share (default: %(default)s)")
+    ap.add_argument("--units", type=int, default=8, help="virtual units of the design (default: %(default)s)")
+    ap.add_argument("--presses", type=int, default=1000, help="presses per unit (default: %(default)s)")
+    ap.add_argument("--epochs", type=int, default=60, help="training epochs (default: %(default)s)")
+    ap.add_argument("--width", type=int, default=8, help="base channels of the U-Net (default: %(default)s)")
+    ap.add_argument("--seed", type=int, default=5,
+                    help="seed of the units, the presses and the training (default: %(default)s)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--gradient-clip", type=float, default=1.0,
-                    help="gradient targets clipped to +- this (mm per mm)")
+                    help="gradient targets clipped to +- this (mm per mm; default: %(default)s)")
     ap.add_argument("--gradient-weight", type=float, default=1.0,
-                    help="weight of the gradient channels in the loss (depth: 1)")
+                    help="weight of the gradient channels in the loss, the depth's is 1 (default: %(default)s)")
     ap.add_argument("--data-cache", type=Path, default=None,
-                    help="keep the generated crops in this .npz and reuse them when present")
-    ap.add_argument("--out", type=Path, default=Path("exported/gelslim_readout.onnx"))
+                    help="keep the generated crops in this .npz and reuse them when present (only with the same "
+                    "--design, --units, --presses and --seed; default: none)")
+    ap.add_argument("--out", type=Path, default=Path("exported/gelslim_readout.onnx"),
+                    help="ONNX file to write, relative to the current folder (default: %(default)s); its card "
+                    "<stem>.json goes beside it")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out and its card")
     args = ap.parse_args(argv)
+    _check_args(args)
     import torch
 
     if args.threads:
@@ -161,7 +225,9 @@ def main(argv=None) -> int:
         if args.data_cache is not None:
             from tactile_deploy.atomic import write_npz
 
-            write_npz(args.data_cache, features=x_all, depth_mm=depth_crops, pitch_mm=pitch)
+            args.data_cache.parent.mkdir(parents=True, exist_ok=True)
+            write_npz(args.data_cache, features=x_all, depth_mm=depth_crops, pitch_mm=pitch,
+                      spec=np.array(json.dumps(_cache_spec(args), sort_keys=True)))
     t_data = time.perf_counter() - t0
     net, losses = train_network(x_all, targets(depth_crops, pitch, args.gradient_clip), args.width,
                                 args.epochs, args.seed, gradient_weight=args.gradient_weight,
