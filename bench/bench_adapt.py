@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     if args.small:
-        args.frames, args.steps, args.repeat = 24, 3, 3
+        args.frames, args.steps, args.repeat = 30, 3, 3
     import torch
 
     if args.threads:

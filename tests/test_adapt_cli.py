@@ -158,4 +158,4 @@ def test_benchmark_runs_at_small_settings(capsys):
         sys.path.remove(str(ROOT))
     assert main(["--small", "--no-write", "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    assert "steps/s" in out and "adapt on 24 frames" in out
+    assert "steps/s" in out and "adapt on 30 frames" in out

@@ -3,17 +3,23 @@
 Data flow of :func:`adapt_plugin` (``tactile-deploy adapt``)::
 
     frames (a folder, a clip, a camera, the plugin's demo) --plugin's imaging pipeline--> depth (N, 128, 128) mm
-      -> split into adaptation / held-out frames (blocks of consecutive frames)
+      -> split into adaptation / held-out frames (blocks of consecutive frames; at least 5 held out)
       -> targets: VAE(depth) (filter.onnx; or the depth itself without the filter)
       -> step program with the active model's weights (adapted version, else the family model)
-      -> held-out label-free RMSE before -> Adam steps (progress, live loss) -> held-out RMSE after
-      -> improved? adapted ONNX (fp32 graph with new initializers; int8 like the family model),
-         parity with the step program, before/after figure, report
+      -> Adam steps (progress, live loss)
+      -> adapted ONNX (fp32 graph with new initializers; int8 like the family model), parity with
+         the step program
+      -> held-out label-free RMSE of the models as ``run`` uses them: the start model, the active
+         one, the adapted model.onnx
+      -> improved (the network's own, fp32, and the written model's beats both)? before/after
+         figure, report
          -> plugin version adapted/v<n>, made active in adapted/history.json (atomic; plugin.json untouched;
             tactile_deploy.adapt.versions)
 
 The label-free RMSE (mm) is the paper's metric: RMS over the held-out maps and the pixels the
-sensor sees of rendered mesh minus target.
+sensor sees of rendered mesh minus target. For an ONNX model its meshes are rendered by the
+simulator's depth camera (the step's renderer gives the same images: the fp32 twin's figure
+equals the step's to ~1e-8 mm).
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ from tactile_deploy.adapt.step import AdaptSettings, Evaluation, History, StepPr
 
 #: Parity the adapted fp32 ONNX model must reach against the step program (mm).
 PARITY_TOLERANCE_MM = 1e-4
+#: Fewest held-out frames the adaptation is judged on.
+MIN_HELD_OUT = 5
 
 
 @dataclass
@@ -55,6 +63,11 @@ class AdaptOptions:
 
 @dataclass
 class AdaptResult:
+    """before, after: held-out figures of the start model and of the adapted model as ``run``
+    uses them (model.onnx: int8 when the family model is); before_fp32, after_fp32: the same of
+    the network (the step program); active: the active model's when it is not the start model;
+    verdict: why a version was or was not written."""
+
     before: Evaluation
     after: Evaluation
     history: History
@@ -64,6 +77,10 @@ class AdaptResult:
     version: object | None = None
     report: dict = field(default_factory=dict)
     figure: Path | None = None
+    before_fp32: Evaluation | None = None
+    after_fp32: Evaluation | None = None
+    active: Evaluation | None = None
+    verdict: str = ""
 
 
 def default_step_folder(plugin) -> Path:
@@ -91,14 +108,17 @@ def view_weight(plugin) -> np.ndarray:
 
 
 def collect_depths(plugin, config, from_manifest: bool = False, max_frames: int | None = None,
-                   log: Callable[[str], None] = print) -> tuple[np.ndarray, dict]:
+                   log: Callable[[str], None] = print, max_refused: int | None = None) -> tuple[np.ndarray, dict]:
     """Depth maps (N, 128, 128) float32 mm of the frames of source ``config`` through the
-    plugin's imaging pipeline; frames the pipeline refuses are counted and skipped."""
+    plugin's imaging pipeline; frames the pipeline refuses are counted and skipped, and
+    ``max_refused`` in a row (default: ``tactile-deploy run``'s ``max_bad_frames``) stop it."""
     from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
+    from tactile_deploy.runtime.run import RunOptions
     from tactile_deploy.runtime.sources.factory import make_source
 
+    max_refused = max_refused or RunOptions.max_bad_frames
     pipeline = ImagingPipeline.from_plugin(plugin)
-    depths, refused = [], 0
+    depths, refused, in_a_row = [], 0, 0
     with make_source(config, plugin, from_manifest=from_manifest) as src:
         if not getattr(src, "finite", True) and max_frames is None:
             raise ValueError(f"{src.name} is a live source: give --max-frames (how many frames to collect)")
@@ -108,10 +128,16 @@ def collect_depths(plugin, config, from_manifest: bool = False, max_frames: int 
                 break
             try:
                 depths.append(pipeline.frame_to_depth(frame.image))
+                in_a_row = 0
             except FrameError as e:
-                refused += 1
+                refused, in_a_row = refused + 1, in_a_row + 1
                 if refused <= 3:
                     log(f"frame {frame.index} refused: {e}")
+                if in_a_row >= max_refused:
+                    raise ValueError(
+                        f"{src.name}: {in_a_row} frames in a row were refused by the imaging pipeline of plugin "
+                        f"{plugin.name!r} ({len(depths)} usable so far); the last, frame {frame.index}: {e}; check "
+                        "that the source is this plugin's sensor (`tactile-deploy run` shows its frames)") from None
         name = src.name
     if not depths:
         raise ValueError(f"{name}: no usable frames")
@@ -133,58 +159,145 @@ def split_blocks(n: int, held_out: float, block: int, seed: int) -> tuple[np.nda
     return np.flatnonzero(~is_held), np.flatnonzero(is_held)
 
 
-def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folder: str | Path | None = None,
-                 progress: Callable[[int, float], None] | None = None, log: Callable[[str], None] = print,
-                 source: dict | None = None) -> AdaptResult:
-    """Adapt ``plugin``'s model on ``depth_mm`` (N, 128, 128) mm (module docstring)."""
-    from tactile_deploy.adapt.versions import add_version, check_writable, staging_folder
-    from tactile_deploy.adapt.weights import read_adapted_weights
+def check_held_out(n: int, n_held_out: int, held_out: float, block: int) -> None:
+    """Refuse to judge an adaptation on fewer than :data:`MIN_HELD_OUT` held-out frames."""
+    if n_held_out >= MIN_HELD_OUT:
+        return
+    need = max(2 * block, -(-(n + 1) // block) * block)  # whole blocks: each held-out block has ``block`` frames
+    raise ValueError(f"only {n_held_out} of the {n} frames would be held out (--held-out {held_out:g}, blocks of "
+                     f"{block} consecutive frames); the adaptation is judged on at least {MIN_HELD_OUT}: collect at "
+                     f"least {need} frames (--max-frames {need}, or more images in --frames)")
 
-    t_start = time.perf_counter()
+
+def prepare_adaptation(plugin, options: AdaptOptions, step_folder: str | Path | None = None) -> StepProgram:
+    """Every check that needs no frames, done before any are collected: the plugin's
+    adapted/history.json and its active version, a writable plugin folder (when writing), the
+    step (its card, files, the device) and that it belongs to the plugin's family model."""
+    from tactile_deploy.adapt.versions import check_writable, load_history
+
+    load_history(plugin)
+    plugin.adapted_model_path()  # the active version: present and unchanged
     if options.write:
         check_writable(plugin)
     folder = Path(step_folder) if step_folder is not None else default_step_folder(plugin)
     step = StepProgram.load(folder, options.device)
     step.check_family_model(plugin.verified_path("model"))
+    return step
+
+
+def evaluate_model(model_path: str | Path, pad, depth_mm: np.ndarray, target_mm: np.ndarray, weight: np.ndarray,
+                   batch: int = 32) -> Evaluation:
+    """Label-free figures of an ONNX model as ``run`` uses it (onnxruntime, CPU): its meshes of
+    ``depth_mm`` (N, 128, 128) mm rendered by the depth camera, against ``target_mm`` with the
+    step's weighting (``weight`` (128, 128)); rendered kept."""
+    from tactile_deploy.camera.depth import DepthCamera
+    from tactile_deploy.runtime.predictor import make_session
+
+    session = make_session(model_path, threads=1, providers="cpu")
+    d = np.asarray(depth_mm, np.float32)[:, None]
+    disp = np.concatenate([session.run(["displacement"], {"depth": d[i:i + batch]})[0] for i in range(0, len(d), batch)])
+    cam, rest = DepthCamera(), pad.vertices[: pad.n_plane]
+    rendered = np.stack([cam.render(pad, rest + u[: pad.n_plane]).depth_mm for u in disp])
+    w = np.asarray(weight, np.float32)
+    mse = (((rendered - target_mm) ** 2 * w).sum(axis=(1, 2)) / max(float(w.sum()), 1e-12)).astype(np.float64)
+    return Evaluation(float(math.sqrt(mse.mean())), mse, disp, rendered, 0)
+
+
+def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folder: str | Path | StepProgram | None = None,
+                 progress: Callable[[int, float], None] | None = None, log: Callable[[str], None] = print,
+                 source: dict | None = None) -> AdaptResult:
+    """Adapt ``plugin``'s model on ``depth_mm`` (N, 128, 128) mm (module docstring);
+    ``step_folder``: the step folder, or the step :func:`prepare_adaptation` loaded."""
+    import shutil
+    import tempfile
+
+    from tactile_deploy.adapt.versions import ADAPTED_DIR, add_version, staging_folder
+    from tactile_deploy.adapt.weights import adaptation_metadata, read_adapted_weights, write_metadata_entries
+    from tactile_deploy.pad.asset import load_pad
+
+    t_start = time.perf_counter()
+    step = step_folder if isinstance(step_folder, StepProgram) else prepare_adaptation(plugin, options, step_folder)
     card = step.card
-    start_model = "family model"
-    active = plugin.adapted_model_path() if options.start == "active" else None
-    if active is not None:
+    depth = np.asarray(depth_mm, np.float32)
+    tr, ho = split_blocks(len(depth), options.held_out, options.block, options.seed)
+    check_held_out(len(depth), len(ho), options.held_out, options.block)
+    start_model, start_path = "family model", plugin.verified_path("model")
+    active = plugin.adapted_model_path()
+    if active is not None and options.start == "active":
         fp32 = active.with_name("model_fp32.onnx")
         step.load_weights(read_adapted_weights(card, fp32 if fp32.is_file() else active))
-        start_model = f"adapted model {active.parent.name}"
+        start_model, start_path = f"adapted model {active.parent.name}", active
     weight = view_weight(plugin)
-    depth = np.asarray(depth_mm, np.float32)
+    fam = plugin.manifest.family
+    pad = load_pad(fam.pad, fam.pad_version)
     target = vae_filter(step, depth) if options.use_filter else depth.copy()
-    tr, ho = split_blocks(len(depth), options.held_out, options.block, options.seed)
     log(f"{len(depth)} frames: {len(tr)} to adapt on, {len(ho)} held out; starting from the {start_model}; "
         f"target: {'VAE(depth)' if options.use_filter else 'depth (no filter)'}")
-    before = evaluate(step, depth[ho], target[ho], weight, keep=("rendered",))
+    before_fp32 = evaluate(step, depth[ho], target[ho], weight)
     settings = AdaptSettings(steps=options.steps, batch_size=options.batch_size, lr=options.lr, seed=options.seed)
     history = adapt(step, depth[tr], target[tr], weight, settings, progress)
-    after = evaluate(step, depth[ho], target[ho], weight, keep=("rendered", "displacement"))
-    improved = after.rmse_mm < before.rmse_mm
+    after_fp32 = evaluate(step, depth[ho], target[ho], weight, keep=("displacement",))
     report = {
-        "plugin": plugin.name, "source": source or {}, "start": start_model, "step": str(folder),
+        "plugin": plugin.name, "source": source or {}, "start": start_model, "step": str(step.folder),
         "step_card": {"name": card.name, "sha256": card.files["step"].sha256, "torch": card.versions.get("torch")},
         "frames": {"adapt": int(len(tr)), "held_out": int(len(ho))},
         "settings": {"steps": options.steps, "batch_size": options.batch_size, "lr": options.lr,
                      "use_filter": options.use_filter, "device": options.device, "seed": options.seed},
-        "heldout_rmse_before_mm": before.rmse_mm, "heldout_rmse_after_mm": after.rmse_mm,
+        "heldout_rmse_before_fp32_mm": before_fp32.rmse_mm, "heldout_rmse_after_fp32_mm": after_fp32.rmse_mm,
         "train_loss_first_mm2": history.loss_mm2[0], "train_loss_last_mm2": history.loss_mm2[-1],
         "adapt_seconds": history.seconds, "steps_per_s": options.steps / max(history.seconds, 1e-9),
-        "renderer_overflow": after.overflow + before.overflow,
+        "renderer_overflow": after_fp32.overflow + before_fp32.overflow,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "improved": bool(improved),
     }
-    result = AdaptResult(before, after, history, len(tr), len(ho), improved, report=report)
-    if not (improved and options.write):
-        report["seconds"] = time.perf_counter() - t_start
-        return result
 
-    staging = staging_folder(plugin)
+    root = Path(plugin.folder) / ADAPTED_DIR
+    made_root = options.write and not root.exists()
+    if options.write:
+        staging = staging_folder(plugin)
+    else:  # measure the written model too, outside the plugin
+        scratch = tempfile.TemporaryDirectory(prefix="tactile-deploy-adapt-")
+        staging = Path(scratch.name)
     try:
-        result.report.update(_write_models(step, staging, depth[tr], depth[ho], after.displacement_mm, report))
+        report.update(_write_models(step, staging, depth[tr], depth[ho], after_fp32.displacement_mm, report))
+        before = evaluate_model(start_path, pad, depth[ho], target[ho], weight)
+        after = evaluate_model(staging / "model.onnx", pad, depth[ho], target[ho], weight)
+        active_eval = None
+        if active is not None and active != start_path:
+            active_eval = evaluate_model(active, pad, depth[ho], target[ho], weight)
+        kind = "int8" if report["int8"] else "fp32"
+        report.update({"heldout_rmse_model": f"model.onnx as run uses it ({kind})",
+                       "heldout_rmse_before_mm": before.rmse_mm, "heldout_rmse_after_mm": after.rmse_mm})
+        if active_eval is not None:
+            report["heldout_rmse_active_mm"] = active_eval.rmse_mm
+            report["active"] = f"adapted model {active.parent.name}"
+        def um(e: Evaluation) -> str:
+            return f"{e.rmse_mm * 1e3:.2f} um"
+
+        if not after_fp32.rmse_mm < before_fp32.rmse_mm:
+            verdict = (f"the adaptation did not lower the network's held-out error (fp32 twin {um(before_fp32)} -> "
+                       f"{um(after_fp32)})")
+        elif not after.rmse_mm < before.rmse_mm:
+            verdict = (f"the adapted model.onnx ({kind}, {um(after)}) is not better than the {start_model} "
+                       f"({um(before)}) on the held-out frames")
+        elif active_eval is not None and not after.rmse_mm < active_eval.rmse_mm:
+            verdict = (f"the adapted model.onnx ({um(after)}) is not better than the active "
+                       f"{report['active']} ({um(active_eval)}) on the same held-out frames")
+        else:
+            verdict = "improved"
+        improved = verdict == "improved"
+        report["improved"], report["verdict"] = improved, verdict
+        result = AdaptResult(before, after, history, len(tr), len(ho), improved, report=report,
+                             before_fp32=before_fp32, after_fp32=after_fp32, active=active_eval, verdict=verdict)
+        if not (improved and options.write):
+            report["seconds"] = time.perf_counter() - t_start
+            return result
+
+        meta = adaptation_metadata(card, {k: report[k] for k in (
+            "heldout_rmse_before_mm", "heldout_rmse_after_mm", "heldout_rmse_before_fp32_mm",
+            "heldout_rmse_after_fp32_mm", "frames", "settings", "created")})
+        for name in ("model.onnx", "model_fp32.onnx"):
+            if (staging / name).is_file():
+                write_metadata_entries(staging / name, meta)
         result.figure = staging / "adaptation.png"
         before_after_figure(depth[ho], target[ho], before.rendered_mm, after.rendered_mm, weight, result.figure,
                             before.rmse_mm, after.rmse_mm)
@@ -199,10 +312,12 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
             "heldout_rmse_after_mm": after.rmse_mm, "summary": summary})
         result.figure = Path(plugin.folder) / result.version.model.rsplit("/", 1)[0] / "adaptation.png"
     finally:
-        if staging.exists():
-            import shutil
-
+        if not options.write:
+            scratch.cleanup()
+        elif staging.exists():
             shutil.rmtree(staging)
+        if made_root and root.is_dir() and not any(root.iterdir()):
+            root.rmdir()  # nothing written: no empty adapted/ either
     return result
 
 
@@ -215,7 +330,7 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
 
     card = step.card
     fp32_src = card.path(step.folder, "fp32_model")
-    meta = adaptation_metadata(card, {k: report[k] for k in ("heldout_rmse_before_mm", "heldout_rmse_after_mm",
+    meta = adaptation_metadata(card, {k: report[k] for k in ("heldout_rmse_before_fp32_mm", "heldout_rmse_after_fp32_mm",
                                                               "frames", "settings", "created")})
     int8 = bool(card.int8_nodes)
     fp32_path = folder / ("model_fp32.onnx" if int8 else "model.onnx")
@@ -298,16 +413,24 @@ def before_after_figure(depth, target, before, after, weight, path: Path, rmse_b
 
 def summary_lines(result: AdaptResult) -> list[str]:
     r = result.report
+    kind = "int8" if r.get("int8") else "fp32"
     lines = [
-        f"held-out label-free RMSE: {result.before.rmse_mm * 1e3:.2f} um -> {result.after.rmse_mm * 1e3:.2f} um "
-        f"({100 * (result.after.rmse_mm / result.before.rmse_mm - 1):+.2f} %, {result.n_held_out} frames; "
-        f"{'improved' if result.improved else 'not improved'})",
-        f"adaptation loss: {math.sqrt(r['train_loss_first_mm2']) * 1e3:.2f} -> {math.sqrt(r['train_loss_last_mm2']) * 1e3:.2f} um "
-        f"RMS over {r['settings']['steps']} steps, {r['adapt_seconds']:.1f} s ({r['steps_per_s']:.2f} steps/s)",
+        f"held-out label-free RMSE of model.onnx as `run` uses it ({kind}, {result.n_held_out} frames): "
+        f"{result.before.rmse_mm * 1e3:.2f} um ({r['start']}) -> {result.after.rmse_mm * 1e3:.2f} um "
+        f"({100 * (result.after.rmse_mm / result.before.rmse_mm - 1):+.2f} %)",
     ]
+    if result.active is not None:
+        lines.append(f"active {r['active']} on the same frames: {result.active.rmse_mm * 1e3:.2f} um")
+    if result.before_fp32 is not None and result.after_fp32 is not None:
+        lines.append(f"network (fp32 twin): {result.before_fp32.rmse_mm * 1e3:.2f} um -> "
+                     f"{result.after_fp32.rmse_mm * 1e3:.2f} um"
+                     + (f"; int8 vs fp32 mesh: RMS {r['int8_vs_fp32_rms_diff_mm'] * 1e3:.2f} um, worst "
+                        f"{r['int8_vs_fp32_max_abs_diff_mm'] * 1e3:.1f} um" if r.get("int8") else ""))
+    lines.append(f"adaptation loss: {math.sqrt(r['train_loss_first_mm2']) * 1e3:.2f} -> "
+                 f"{math.sqrt(r['train_loss_last_mm2']) * 1e3:.2f} um RMS over {r['settings']['steps']} steps, "
+                 f"{r['adapt_seconds']:.1f} s ({r['steps_per_s']:.2f} steps/s)")
     if "parity_fp32_onnx_vs_step_max_abs_diff_mm" in r:
-        lines.append(f"adapted ONNX vs step program: max {r['parity_fp32_onnx_vs_step_max_abs_diff_mm']:.2e} mm"
-                     + (f"; int8 vs fp32 RMS {r['int8_vs_fp32_rms_diff_mm'] * 1e3:.2f} um" if r.get("int8") else ""))
+        lines.append(f"adapted ONNX (fp32) vs step program: max {r['parity_fp32_onnx_vs_step_max_abs_diff_mm']:.2e} mm")
     if "ood_share_above_threshold_adapted" in r:
         lines.append(f"held-out frames flagged out of distribution: {100 * r['ood_share_above_threshold_family']:.0f} % "
                      f"(family model) -> {100 * r['ood_share_above_threshold_adapted']:.0f} % (adapted)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import typer
@@ -21,7 +22,8 @@ def adapt_command(
     steps: int = typer.Option(200, "--steps", min=1, help="Adam steps."),
     batch_size: int = typer.Option(16, "--batch", min=1, help="Depth maps per step."),
     lr: float = typer.Option(1e-4, "--lr", min=0.0, help="Adam learning rate."),
-    held_out: float = typer.Option(0.2, "--held-out", min=0.01, max=0.9, help="Share of frames kept aside to judge the adaptation."),
+    held_out: float = typer.Option(0.2, "--held-out", help="Share of frames kept aside to judge the adaptation "
+                                   "(0.01 to 0.9)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda (torch device)."),
     no_filter: bool = typer.Option(False, "--no-filter", help="Match the raw depth map instead of the image VAE's "
                                    "reconstruction (the paper's ablation; usually worse)."),
@@ -31,9 +33,13 @@ def adapt_command(
                                          "beside the family model)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the held-out split and the batch order."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: torch's)."),
-    dry_run: bool = typer.Option(False, "--dry-run", help="Measure only: write nothing to the plugin."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Measure only: write nothing to the plugin (with "
+                                 "--rollback or --activate: say what they would do)."),
     rollback: bool = typer.Option(False, "--rollback", help="Make the previous adapted version (or the plugin's "
                                   "own model) active again, and stop."),
+    activate: int | None = typer.Option(None, "--activate", help="Make kept version N active again (checked: its "
+                                        "model file, and that it was adapted from the plugin's family model), and "
+                                        "stop; --rollback then returns to the one active before."),
 ) -> None:
     """Adapt a plugin's model to its sensor from unlabelled frames (self-supervised); writes a new
     version into the plugin's adapted/ folder only when the held-out error improves (the plugin's
@@ -48,21 +54,16 @@ def adapt_command(
         plugin = SensorPlugin.load(sensor)
     except PluginError as e:
         fail(str(e))
-    if rollback:
-        from tactile_deploy.adapt.versions import rollback as do_rollback
-
-        try:
-            was, now = do_rollback(plugin)
-        except (ValueError, FileNotFoundError, PermissionError) as e:
-            fail(str(e))
-        name = {None: "the plugin's own model"}
-        console.print(f"{plugin.name}: {name.get(was, f'version {was}')} -> {name.get(now, f'version {now}')} "
-                      f"(active now; all versions kept in {plugin.folder / 'adapted'})")
+    if rollback or activate is not None:
+        _switch_version(plugin, rollback, activate, dry_run)
         return
     if frames is not None and source is not None:
         fail("give --frames or --source, not both")
-    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
-        fail(f"--device must be cpu or cuda, got {device!r}")
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", device):
+        fail(f"--device must be cpu, cuda or cuda:N (N: the index of a CUDA device), got {device!r}")
+    if not 0.01 <= held_out <= 0.9:
+        fail(f"--held-out must be a share of the frames from 0.01 to 0.9, got {held_out:g}; e.g. --held-out 0.2 "
+             "keeps a fifth of them aside")
     try:
         if frames is not None:
             if not frames.is_dir():
@@ -79,15 +80,19 @@ def adapt_command(
         require_onnx()
         if threads is not None:
             torch.set_num_threads(threads)
-        from tactile_deploy.adapt.workflow import AdaptOptions, adapt_plugin, collect_depths, summary_lines
+        from tactile_deploy.adapt.workflow import (AdaptOptions, adapt_plugin, collect_depths, prepare_adaptation,
+                                                   summary_lines)
 
-        depth, info = collect_depths(plugin, config, from_manifest, max_frames, log=err_console.print)
-        err_console.print(f"{info['frames']} frames from {info['source']}" + (f" ({info['refused']} refused)" if info["refused"] else ""))
         options = AdaptOptions(steps=steps, batch_size=batch_size, lr=lr, held_out=held_out, use_filter=not no_filter,
                                device=device, seed=seed, start="family" if from_family else "active", write=not dry_run)
+        step = prepare_adaptation(plugin, options, step_dir)  # every check that needs no frames, first
+        depth, info = collect_depths(plugin, config, from_manifest, max_frames, log=err_console.print)
+        err_console.print(f"{info['frames']} frames from {info['source']}" + (f" ({info['refused']} refused)" if info["refused"] else ""))
         with _loss_progress(steps) as progress:
-            result = adapt_plugin(plugin, depth, options, step_dir, progress=progress, log=err_console.print,
+            result = adapt_plugin(plugin, depth, options, step, progress=progress, log=err_console.print,
                                   source=info)
+    except (typer.Exit, typer.Abort):  # fail() above: already said
+        raise
     except (PluginError, CardError, AdaptationUnavailable, SourceSpecError, SourceError, ValueError,
             FileNotFoundError, PermissionError, RuntimeError) as e:
         fail(str(e))
@@ -95,12 +100,41 @@ def adapt_command(
         console.print(line)
     if result.version is not None:
         console.print(f"[bold green]new version {result.version.version}[/] of {plugin.name}: {result.version.model} "
-                      f"(active; `tactile-deploy adapt --sensor {plugin.name} --rollback` returns to the previous one); "
-                      f"figure: {result.figure}")
+                      f"(active; `tactile-deploy adapt --sensor {plugin.sensor_option} --rollback` returns to the "
+                      f"previous one); figure: {result.figure}")
     elif dry_run:
-        console.print("dry run: nothing written")
+        console.print("dry run: nothing written; " + ("the adapted model is better: a version would have been written"
+                                                    if result.improved else result.verdict))
     else:
-        console.print(f"the held-out error did not improve: {plugin.name} keeps its current model")
+        console.print(f"not written: {result.verdict}; {plugin.name} keeps its current model")
+
+
+def _switch_version(plugin, rollback: bool, activate: int | None, dry_run: bool) -> None:
+    """--rollback or --activate N (with --dry-run: say what it would do)."""
+    from tactile_deploy.adapt.versions import activate as do_activate
+    from tactile_deploy.adapt.versions import rollback as do_rollback
+
+    if rollback and activate is not None:
+        fail(f"give --rollback or --activate, not both (got --activate {activate} with --rollback)")
+    if activate is not None and activate < 1:
+        fail(f"--activate takes the number of a kept version (1 or more), got {activate}; --rollback returns to the "
+             "plugin's own model")
+    try:
+        if rollback:
+            was, now = do_rollback(plugin, dry_run=dry_run, warn=lambda m: err_console.print(f"warning: {m}"))
+        else:
+            was, now = do_activate(plugin, activate, dry_run=dry_run)
+    except (ValueError, FileNotFoundError, PermissionError) as e:
+        fail(str(e))
+    name = {None: "the plugin's own model"}
+    change = f"{name.get(was, f'version {was}')} -> {name.get(now, f'version {now}')}"
+    if dry_run:
+        console.print(f"dry run: {plugin.name} would go {change}; nothing written")
+    elif was == now:
+        console.print(f"{plugin.name}: version {now} is already active; nothing changed")
+    else:
+        console.print(f"{plugin.name}: {change} (active now; all versions kept in {plugin.folder / 'adapted'}; "
+                      f"`tactile-deploy adapt --sensor {plugin.sensor_option} --rollback` goes back)")
 
 
 class _loss_progress:

@@ -336,6 +336,7 @@ class SensorPlugin:
         self.hooks = hooks or PluginHooks()
         self.origin = origin
         self._verified: set[str] = set()
+        self._found_as: str | None = None  # the registered name it was loaded by
 
     @classmethod
     def load(cls, name_or_path: str | os.PathLike) -> SensorPlugin:
@@ -346,11 +347,21 @@ class SensorPlugin:
         manifest = load_manifest(loc.folder)
         if loc.origin != "path" and manifest.name != loc.name:
             log.warning("plugin registered as %r has manifest name %r", loc.name, manifest.name)
-        return cls(manifest, loc.folder, loc.hooks, loc.origin)
+        plugin = cls(manifest, loc.folder, loc.hooks, loc.origin)
+        plugin._found_as = loc.name if loc.origin != "path" else None
+        return plugin
 
     @property
     def name(self) -> str:
         return self.manifest.name
+
+    @property
+    def sensor_option(self) -> str:
+        """The ``--sensor`` value that finds this plugin from any folder: the registered name it
+        was loaded by, else its absolute folder (quoted for a shell when needed)."""
+        import shlex
+
+        return self._found_as or shlex.quote(str(self.folder.resolve()))
 
     def __repr__(self) -> str:
         return f"SensorPlugin({self.name!r}, folder={str(self.folder)!r})"
@@ -415,7 +426,7 @@ class SensorPlugin:
                 raise PluginError(
                     f"plugin {self.name!r}: active adapted version {rec.version} ({path}) is missing or does not "
                     f"match its sha256 in adapted/history.json; restore it, or go back with "
-                    f"`tactile-deploy adapt --sensor {self.name} --rollback`")
+                    f"`tactile-deploy adapt --sensor {self.sensor_option} --rollback`")
             return path
         if self.manifest.adapted_model is not None:
             return self.verified_path("adapted_model")
