@@ -45,8 +45,13 @@ def pad_export(
         got = repr(out.suffix) if out.suffix else "no suffix"
         fail(f"--out {out}: the suffix must name a mesh format, got {got}; use a volume suffix "
              f"({', '.join(VOLUME_SUFFIXES)}) or a surface suffix ({', '.join(SURFACE_SUFFIXES)})")
+    if out.is_dir():
+        fail(f"--out {out} is a folder; give a file path ending in a mesh suffix")
     if out.exists() and not overwrite:
         fail(f"{out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        state = "is a file, not a folder" if out.parent.exists() else "does not exist"
+        fail(f"output folder {out.parent} {state}; create it first or choose another --out")
     mesh = _load_pad(name)
     try:
         if out.suffix.lower() in SURFACE_SUFFIXES:
@@ -74,11 +79,11 @@ def _load_pad(name: str):
 def indenters_list(kind: str = typer.Option(None, "--kind", help="'primitive' or 'novel'.")) -> None:
     """List the procedural indenter library."""
     from tactile_deploy.indenters import library_entry, list_indenters
+    from tactile_deploy.indenters.library import KINDS
 
-    try:
-        names = list_indenters(kind)
-    except ValueError as exc:
-        fail(str(exc))
+    if kind is not None and kind not in KINDS:
+        fail(f"--kind must be one of {', '.join(KINDS)}, got {kind!r}; or leave out --kind to list all")
+    names = list_indenters(kind)
     for name in names:
         entry = library_entry(name)
         console.print(f"{name:18s} {entry.kind:9s} {entry.description}")

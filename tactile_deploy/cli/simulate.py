@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from tactile_deploy.cli.common import console, fail, prepare_simulator, progress_bar
+from tactile_deploy.cli.common import console, err_console, fail, prepare_simulator, progress_bar
 
 FRICTION_CHOICES = ("frictionless", "stick")
 
@@ -25,7 +26,23 @@ def _indenter_list(text: str) -> tuple[str, ...]:
     return tuple(t.strip() for t in text.split(",") if t.strip())
 
 
+#: Options of one contact (parameter name -> option; refused with --n).
+SINGLE_OPTIONS = {"indenter": "--indenter", "x": "--x", "y": "--y", "theta": "--theta",
+                  "depth": "--depth", "pressing_face": "--pressing-face", "overwrite": "--overwrite"}
+#: Options of a dataset (used with --n only).
+BATCH_OPTIONS = {"indenters": "--indenters", "shard_size": "--shard-size", "depth_range": "--depth-range",
+                 "workers": "--workers", "storage": "--storage"}
+MATERIAL_OPTIONS = {"E_mpa": "--E", "nu": "--nu", "mu": "--mu", "friction": "--friction"}
+
+
+def _given(ctx: typer.Context, options: dict[str, str]) -> list[str]:
+    """The ``options`` the user typed (not left at their defaults)."""
+    return [opt for name, opt in options.items()
+            if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") != "DEFAULT"]
+
+
 def simulate_command(
+    ctx: typer.Context,
     indenter: Optional[str] = typer.Option(None, "--indenter", help="Library name (see `tactile-deploy indenters list`) or mesh file (STL/OBJ/PLY, mm)."),
     x: float = typer.Option(0.0, "--x", help="Indenter origin x in the sensor frame, mm."),
     y: float = typer.Option(0.0, "--y", help="Indenter origin y in the sensor frame, mm."),
@@ -58,7 +75,11 @@ def simulate_command(
     try:
         material = Material(E_mpa=E, nu=nu, mu=mu, friction=friction)
     except ValidationError as exc:
-        fail(f"invalid material: {exc.errors()[0]['loc'][0]}: {exc.errors()[0]['msg']}")
+        e = exc.errors()[0]
+        option = MATERIAL_OPTIONS.get(str(e["loc"][0]), str(e["loc"][0]))
+        rule = {"--E": "Young's modulus, MPa, > 0", "--nu": "Poisson's ratio, 0 <= nu < 0.5",
+                "--mu": "friction coefficient, >= 0"}.get(option, "")
+        fail(f"{option} {e.get('input')}: {e['msg'].lower()}; pass a value in range ({rule})")
     if rgb and sensor is None:
         fail("--rgb renders a virtual sensor's camera frame: give --sensor NAME as well")
     if sensor is not None:
@@ -72,11 +93,39 @@ def simulate_command(
                               out, overwrite)
         return
     if n is None:
+        batch_only = _given(ctx, BATCH_OPTIONS)
+        if batch_only:
+            fail(f"{', '.join(batch_only)} set up a dataset and need --n N; leave "
+                 f"{'them' if len(batch_only) > 1 else 'it'} out for one contact")
         if indenter is None:
             fail("give --indenter NAME|PATH for one contact, or --n N for a dataset")
         _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite)
     else:
+        single_only = _given(ctx, SINGLE_OPTIONS)
+        if single_only:
+            fail(_single_options_with_n(single_only))
         _batch(n, indenters, seed, shard_size, depth_range, workers, material, out, storage)
+
+
+def _count(k: int, noun: str) -> str:
+    return f"{k} {noun}{'' if k == 1 else 's'}"
+
+
+def _single_options_with_n(given: list[str]) -> str:
+    """The error for one-contact options given with --n: what a dataset uses instead."""
+    from tactile_deploy.simulation.dataset import DatasetSpec
+
+    radius = DatasetSpec.model_fields["radius_max_mm"].default
+    instead = []
+    if {"--indenter", "--pressing-face"} & set(given):
+        instead.append("choose its shapes with --indenters NAMES|primitives|novel|all")
+    if "--depth" in given:
+        instead.append("its depths with --depth-range MIN,MAX (mm)")
+    if "--overwrite" in given:
+        instead.append("start over in a new --out folder (a dataset folder is resumed, never replaced)")
+    return (f"{', '.join(given)} set one contact and do not apply with --n: a dataset draws random "
+            f"contacts (positions within {radius:g} mm of the centre, rotations 0-360 deg)"
+            f"{'; ' if instead else ''}{', '.join(instead)}; or leave out --n to simulate one contact")
 
 
 def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, overwrite: bool) -> None:
@@ -88,10 +137,16 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
 
     if out.suffix != ".npz":
         fail(f"--out must end in .npz for one contact, got {out}")
+    if out.is_dir():
+        fail(f"--out {out} is a folder; give a FILE.npz path for one contact")
     if out.exists() and not overwrite:
         fail(f"{out} exists; pass --overwrite to replace it or choose another --out")
-    if not out.parent.exists():
-        fail(f"output folder {out.parent} does not exist; create it first")
+    if not out.parent.is_dir():
+        state = "is a file, not a folder" if out.parent.exists() else "does not exist"
+        fail(f"output folder {out.parent} {state}; create it first or choose another --out")
+    for option, value in (("--x", x), ("--y", y), ("--theta", theta), ("--depth", depth)):
+        if not math.isfinite(value):
+            fail(f"{option} must be a finite number ({'degrees' if option == '--theta' else 'mm'}), got {value}")
     try:
         ind = get_indenter(indenter, pressing_face=pressing_face)
         pose = ContactPose(x_mm=x, y_mm=y, theta_deg=theta, depth_mm=depth)
@@ -115,40 +170,86 @@ def _batch(n, indenters, seed, shard_size, depth_range, workers, material, out: 
     from pydantic import ValidationError
 
     from tactile_deploy.simulation.contact import get_simulator
-    from tactile_deploy.simulation.dataset import DatasetSpec, generate_dataset
+    from tactile_deploy.simulation.dataset import (
+        DEPTH_LIMIT_MM, SPEC_OPTIONS, DatasetSpec, generate_dataset, scan_dataset, shard_path,
+    )
 
+    if n <= 0:
+        fail(f"--n must be a positive number of contacts, got {n}")
+    if shard_size <= 0:
+        fail(f"--shard-size must be a positive number of samples per shard, got {shard_size}")
+    if seed < 0:
+        fail(f"--seed must be >= 0, got {seed}")
+    if workers < 1:
+        fail(f"--workers must be >= 1 (worker processes), got {workers}")
+    if storage not in ("float16", "float32"):
+        fail(f"--storage must be float16 or float32, got {storage!r}")
+    if out.suffix == ".npz":
+        fail(f"--out must be a folder in batch mode, got {out}")
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out} is a file, not a dataset folder; choose a new or existing dataset folder")
     try:
         lo, hi = (float(v) for v in depth_range.split(","))
     except ValueError:
         fail(f"--depth-range must be 'min,max' in mm, got {depth_range!r}")
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= DEPTH_LIMIT_MM):
+        fail(f"--depth-range {depth_range}: need 0 < min <= max <= {DEPTH_LIMIT_MM:g} mm (the pad "
+             f"model's deepest indentation), got min {lo:g} mm, max {hi:g} mm; e.g. --depth-range 0.2,1.2")
     names = _indenter_list(indenters)
     try:
         from tactile_deploy.indenters import get_indenter
 
         for name in names:
             get_indenter(name)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(f"--indenters: {exc}")
+    try:
         spec = DatasetSpec(
             n_samples=n, indenters=names, seed=seed, shard_size=shard_size,
             depth_min_mm=lo, depth_max_mm=hi, material=material, storage=storage,
         )
-    except (ValueError, FileNotFoundError, ValidationError) as exc:
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        option = SPEC_OPTIONS.get(str(e["loc"][0]), str(e["loc"][0])) if e["loc"] else "--depth-range"
+        fail(f"{option}: {e['msg']} (got {e.get('input')!r}); see `tactile-deploy simulate --help`")
+    try:
+        existing = scan_dataset(spec, out)  # checks the folder before any work
+    except ValueError as exc:
         fail(str(exc))
-    if out.suffix == ".npz":
-        fail(f"--out must be a folder in batch mode, got {out}")
+    n_done = sum(r.n_samples for r in existing.values())
+    if len(existing) == spec.n_shards:
+        card = generate_dataset(spec, out, workers=workers, existing=existing)  # completes the card
+        console.print(f"complete: {_count(len(card.shards), 'shard')} ({n_done} samples) in {out}, nothing to do; "
+                      f"card: {out / 'dataset.json'}")
+        console.print(json.dumps(card.counts_per_indenter))
+        return
     prepare_simulator(get_simulator(material))
-    with progress_bar(f"simulating {n} contacts", n, "samples") as advance:
-        done = [0]
+    shards_now = [0]
+    try:
+        with progress_bar(f"simulating {n} contacts", n, "samples") as advance:
+            if n_done:
+                advance(n_done)  # already on disk (the rate counts this run's samples only)
+            written = [0]
 
-        def on_shard(count: int, elapsed: float) -> None:
-            done[0] += count
-            advance(count, rate=done[0] / max(elapsed, 1e-9))
+            def on_shard(count: int, elapsed: float) -> None:
+                written[0] += count
+                shards_now[0] += 1
+                advance(count, rate=written[0] / max(elapsed, 1e-9))
 
-        try:
-            card = generate_dataset(spec, out, workers=workers, on_shard=on_shard)
-        except ValueError as exc:
-            fail(str(exc))
+            try:
+                card = generate_dataset(spec, out, workers=workers, on_shard=on_shard, existing=existing)
+            except ValueError as exc:
+                fail(str(exc))
+    except KeyboardInterrupt:  # shards are written whole or not at all: count those on disk
+        on_disk = sum(shard_path(out, i).exists() for i in range(spec.n_shards))
+        err_console.print(f"interrupted; {on_disk} of {spec.n_shards} shards done; rerun the same "
+                          f"command to resume")
+        raise typer.Exit(130)
+    kept = (f"; {_count(len(existing), 'shard')} ({n_done} samples) already there, "
+            f"{_count(len(card.shards), 'shard')} ({sum(s.n_samples for s in card.shards)} samples) "
+            f"in all") if existing else ""
     console.print(
-        f"wrote {len(card.shards)} shards to {out} ({sum(s.n_samples for s in card.shards)} samples); "
+        f"wrote {_count(shards_now[0], 'shard')} to {out} ({written[0]} samples){kept}; "
         f"card: {out / 'dataset.json'}"
     )
     console.print(json.dumps(card.counts_per_indenter))

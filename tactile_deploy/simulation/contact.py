@@ -32,6 +32,30 @@ MAX_DEPTH_FRACTION = 0.5
 
 GENERATOR_VERSION = "1"
 
+SENSOR_FRAME = "sensor: origin at the centre of the sensing surface, z up out of the gel"
+#: What the two depth maps of a contact are (written into every file that stores them).
+DEPTH_MEANING = (
+    "mm pushed in along -z (>= 0), rendered from the deformed pad mesh (~1 mm node spacing: "
+    "features finer than ~2 mm are smoothed); consistent with the deformed vertices"
+)
+DEPTH_DETAIL_MEANING = (
+    "mm, max(depth, the indenter's intrusion below the rest surface at each pixel centre) on the "
+    "pad: depth with the indenter's fine features restored inside the contact"
+)
+
+
+def camera_metadata(camera: DepthCamera) -> dict:
+    """The image geometry of ``camera``'s depth maps, for file metadata."""
+    h, p, n = camera.half_extent_mm, camera.pitch_mm, camera.resolution
+    return {
+        "shape_px": [n, n],
+        "half_extent_mm": h,
+        "pixel_pitch_mm": p,
+        "projection": "orthographic along +z, sensor frame",
+        "pixel_centre": f"row i, column j at x_mm = -{h} + (j + 0.5) * {p}, "
+                        f"y_mm = {h} - (i + 0.5) * {p}: row 0 = largest y, column 0 = smallest x",
+    }
+
 
 class ContactError(ValueError):
     """A commanded contact the simulator cannot or should not run (message says why and what to do)."""
@@ -159,7 +183,16 @@ def simulate_contact(
             "mesh_hash": mesh.content_hash,
             "n_nodes": mesh.n_nodes,
             "generator_version": GENERATOR_VERSION,
-            "units": {"depth": "mm", "vertices": "mm", "force_n": "N", "pressure_kpa": "kPa"},
-            "frame": "sensor: origin at the centre of the sensing surface, z up out of the gel",
+            "units": {
+                "depth": "mm", "depth_detail": "mm", "vertices": "mm", "rest_vertices": "mm",
+                "force_n": "N", "pressure_kpa": "kPa", "pose.x_mm": "mm", "pose.y_mm": "mm",
+                "pose.depth_mm": "mm", "pose.theta_deg": "deg", "material.E_mpa": "MPa",
+                "material.nu": "1", "material.mu": "1",
+            },
+            "depth": DEPTH_MEANING,
+            "depth_detail": DEPTH_DETAIL_MEANING,
+            "mask": "pixel inside the pad's outline",
+            "image": camera_metadata(cam),
+            "frame": SENSOR_FRAME,
         },
     )

@@ -1,4 +1,4 @@
-"""Sharded, resumable, seed-reproducible datasets of simulated contacts.
+r"""Sharded, resumable, seed-reproducible datasets of simulated contacts.
 
 Layout of a dataset folder::
 
@@ -21,6 +21,8 @@ indenter_names      (k,) str
 x_mm, y_mm          (S,) float32            indenter origin, sensor frame
 theta_deg           (S,) float32            rotation about +z
 depth_mm            (S,) float32            commanded indentation depth
+metadata            () str                  JSON: units, frame, image geometry, material,
+                                            mesh hash, storage precision, spec, shard index
 ==================  ======================  =============================================
 
 \* ``spec.storage`` = "float16" (the default) stores these three in half precision: it rounds each
@@ -31,7 +33,9 @@ float32 (:func:`training.data.load_dataset_dir`).
 
 Shard ``i`` draws its contacts from ``numpy.random.default_rng([seed, i])``, so a dataset is
 reproduced exactly by its seed whatever the number of workers or interruptions; a killed run
-resumes by skipping the shards already on disk.
+resumes by skipping the shards already on disk, each checked first against the checksum the card
+recorded for it (or, for a shard the card does not list yet, against the spec and index in its own
+metadata): a shard that was changed or belongs to another dataset is refused, never mixed in.
 """
 
 from __future__ import annotations
@@ -40,20 +44,25 @@ import hashlib
 import json
 import math
 import os
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor
+import zipfile
 from pathlib import Path
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_json, write_npz
 from tactile_deploy.fem.material import Material
 from tactile_deploy.simulation.contact import (
+    DEPTH_DETAIL_MEANING,
+    DEPTH_MEANING,
     GENERATOR_VERSION,
     MAX_DEPTH_FRACTION,
+    SENSOR_FRAME,
     ContactError,
+    camera_metadata,
     get_camera,
     get_simulator,
     simulate_contact,
@@ -62,6 +71,15 @@ from tactile_deploy.simulation.contact import (
 CARD_NAME = "dataset.json"
 #: Shard arrays stored in half precision when ``spec.storage == "float16"``.
 STORED_IN_HALF = ("depth", "depth_detail", "displacement")
+#: Deepest commanded depth of a dataset, mm (MAX_DEPTH_FRACTION of the shipped 3 mm gel).
+DEPTH_LIMIT_MM = MAX_DEPTH_FRACTION * 3.0
+#: Units of the shard arrays and of the spec's numbers (the shard's ``metadata["units"]``).
+SHARD_UNITS = {
+    "depth": "mm", "depth_detail": "mm", "displacement": "mm", "rest_vertices": "mm",
+    "force_n": "N", "x_mm": "mm", "y_mm": "mm", "theta_deg": "deg", "depth_mm": "mm",
+    "spec.depth_min_mm": "mm", "spec.depth_max_mm": "mm", "spec.radius_max_mm": "mm",
+    "spec.material.E_mpa": "MPa", "spec.material.nu": "1", "spec.material.mu": "1",
+}
 
 
 class DatasetSpec(BaseModel):
@@ -88,9 +106,8 @@ class DatasetSpec(BaseModel):
             raise ValueError(
                 f"depth_min_mm={self.depth_min_mm} exceeds depth_max_mm={self.depth_max_mm}"
             )
-        limit = MAX_DEPTH_FRACTION * 3.0
-        if self.depth_max_mm > limit:
-            raise ValueError(f"depth_max_mm={self.depth_max_mm} exceeds the pad's {limit:g} mm")
+        if self.depth_max_mm > DEPTH_LIMIT_MM:
+            raise ValueError(f"depth_max_mm={self.depth_max_mm} exceeds the pad's {DEPTH_LIMIT_MM:g} mm")
         if self.radius_max_mm >= 17.5:
             raise ValueError(f"radius_max_mm={self.radius_max_mm} must stay inside the 17.5 mm pad")
         return self
@@ -204,6 +221,29 @@ def generate_shard(spec: DatasetSpec, index: int, out_dir: Path) -> ShardRecord:
             arrays[key] = arrays[key].astype(np.float16)
     arrays["rest_vertices"] = sim.mesh.vertices.astype(np.float32)
     arrays["indenter_names"] = np.array([ind.name for ind in indenters])
+    arrays["metadata"] = np.array(json.dumps({
+        "format_version": 1,
+        "generator_version": GENERATOR_VERSION,
+        "shard_index": index,
+        "n_samples": count,
+        "rejected_poses": rejected,
+        "spec": spec.model_dump(mode="json"),
+        "mesh_hash": sim.mesh.content_hash,
+        "n_nodes": n,
+        "formulation": sim.formulation,
+        "units": SHARD_UNITS,
+        "frame": SENSOR_FRAME,
+        "depth": DEPTH_MEANING,
+        "depth_detail": DEPTH_DETAIL_MEANING,
+        "image": camera_metadata(cam),
+        "storage": {
+            "precision": spec.storage,
+            "dtypes": {k: str(v.dtype) for k, v in arrays.items()},
+            "note": (f"{', '.join(STORED_IN_HALF)} rounded to 11 significant bits (<= 0.49 um "
+                     f"below 2 mm); readers cast to float32") if spec.storage == "float16"
+                    else "float arrays stored exactly as computed (float32)",
+        },
+    }))
     path = shard_path(out_dir, index)
     write_npz(path, **arrays)
     if limits is not None:
@@ -213,15 +253,124 @@ def generate_shard(spec: DatasetSpec, index: int, out_dir: Path) -> ShardRecord:
     )
 
 
-def _read_shard_record(path: Path, expected: int) -> ShardRecord | None:
-    """Record of a shard already on disk, or None when it is unreadable or incomplete."""
+#: Option of ``tactile-deploy simulate`` that sets each spec field (for messages).
+SPEC_OPTIONS = {
+    "n_samples": "--n", "indenters": "--indenters", "seed": "--seed", "shard_size": "--shard-size",
+    "depth_min_mm": "--depth-range", "depth_max_mm": "--depth-range", "storage": "--storage",
+    "material.E_mpa": "--E", "material.nu": "--nu", "material.mu": "--mu",
+    "material.friction": "--friction",
+}
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def spec_differences(old: DatasetSpec, new: DatasetSpec, where: str) -> str:
+    """``"seed (--seed): 0 in {where}, 1 now; ..."``: the fields in which ``new`` differs."""
+    a, b = _flat(old.model_dump(mode="json")), _flat(new.model_dump(mode="json"))
+
+    def text(v):
+        return ",".join(map(str, v)) if isinstance(v, list) else str(v)
+
+    parts = []
+    for key in a:
+        if a[key] != b.get(key):
+            option = f" ({SPEC_OPTIONS[key]})" if key in SPEC_OPTIONS else ""
+            parts.append(f"{key}{option}: {text(a[key])} in {where}, {text(b.get(key))} now")
+    return "; ".join(parts)
+
+
+def _existing_shard(
+    path: Path, index: int, spec: DatasetSpec, recorded: ShardRecord | None, mesh_hash: str
+) -> ShardRecord | None:
+    """Record of shard ``index`` already on disk; None when it is not a readable shard (a write cut
+    short: it is simulated again). A readable shard is checked against the checksum ``recorded`` in
+    the card or, when the card lists none, against the spec, index and mesh in its own metadata: a
+    shard that does not match raises ValueError (it is the user's file: never overwritten)."""
+    expected = spec.shard_count(index)
     try:
         with np.load(path) as data:
-            if len(data["force_n"]) != expected:
-                return None
-    except (OSError, ValueError, KeyError, EOFError):
+            len(data["force_n"])
+            meta_text = str(data["metadata"]) if "metadata" in data.files else None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
-    return ShardRecord(file=path.name, n_samples=expected, sha256=_file_sha256(path), rejected_poses=0)
+    fix = f"delete {path} to simulate it again, or use another --out folder"
+    sha = _file_sha256(path)
+    if recorded is not None:
+        if sha != recorded.sha256:
+            raise ValueError(
+                f"{path} does not match the checksum recorded in {path.parent / CARD_NAME} (sha256 "
+                f"{recorded.sha256[:16]}..., the file has {sha[:16]}...): it was changed or comes "
+                f"from another dataset; {fix}"
+            )
+        return recorded
+    try:
+        meta = json.loads(meta_text) if meta_text is not None else None
+        theirs = DatasetSpec.model_validate(meta["spec"]) if isinstance(meta, dict) else None
+    except (json.JSONDecodeError, KeyError, TypeError, ValidationError):
+        theirs = None
+    if theirs is None:
+        raise ValueError(f"{path} is not listed in {path.parent / CARD_NAME} and its metadata does "
+                         f"not say which dataset it belongs to; {fix}")
+    if theirs != spec:
+        raise ValueError(f"{path} belongs to a different dataset ({spec_differences(theirs, spec, 'the shard')}); {fix}")
+    if meta.get("shard_index") != index or meta.get("mesh_hash") != mesh_hash:
+        raise ValueError(
+            f"{path} is shard {meta.get('shard_index')} of mesh {str(meta.get('mesh_hash'))[:12]}..., "
+            f"expected shard {index} of mesh {mesh_hash[:12]}...; {fix}"
+        )
+    return ShardRecord(file=path.name, n_samples=expected, sha256=sha,
+                       rejected_poses=int(meta.get("rejected_poses", 0)))
+
+
+def scan_dataset(spec: DatasetSpec, out_dir: str | os.PathLike) -> dict[int, ShardRecord]:
+    """Check that ``out_dir`` can take (or already holds part of) the dataset ``spec``; returns the
+    records of the complete shards already there, by index. Raises ValueError (message says what to
+    do) for a file in place of the folder, a card of another dataset or a shard that does not
+    belong (see :func:`_existing_shard`); writes nothing."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir} is a file, not a dataset folder; choose a new or "
+                         f"existing dataset folder for --out")
+    mesh_hash = get_simulator(spec.material).mesh.content_hash
+    card_path = out_dir / CARD_NAME
+    recorded: dict[str, ShardRecord] = {}
+    if card_path.exists():
+        try:
+            previous = DatasetCard.model_validate(json.loads(card_path.read_text()))
+        except (UnicodeDecodeError, json.JSONDecodeError, ValidationError):
+            raise ValueError(f"{card_path} is not a dataset card; use another --out folder, or delete "
+                             f"{card_path} to check the shards by their own metadata") from None
+        if previous.spec != spec:
+            raise ValueError(
+                f"{card_path} describes a different dataset ({spec_differences(previous.spec, spec, 'the card')}); "
+                f"use another --out folder or the same parameters to resume"
+            )
+        if previous.mesh_hash != mesh_hash:
+            raise ValueError(f"{card_path} was simulated on another pad mesh (hash {previous.mesh_hash[:12]}..., "
+                             f"now {mesh_hash[:12]}...); use another --out folder")
+        recorded = {r.file: r for r in previous.shards}
+    records: dict[int, ShardRecord] = {}
+    for index in range(spec.n_shards):
+        path = shard_path(out_dir, index)
+        if path.exists():
+            rec = _existing_shard(path, index, spec, recorded.get(path.name), mesh_hash)
+            if rec is not None:
+                records[index] = rec
+    return records
+
+
+def _worker_init() -> None:
+    """Workers leave Ctrl-C to the parent, which stops them (SIGTERM ends them at once)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _worker_shard(args):
@@ -234,36 +383,28 @@ def generate_dataset(
     out_dir: str | os.PathLike,
     workers: int = 1,
     on_shard: Callable[[int, float], None] | None = None,
+    existing: dict[int, ShardRecord] | None = None,
 ) -> DatasetCard:
     """Generate (or resume) a dataset in ``out_dir``; returns its card.
 
-    ``on_shard(n_samples_done_now, elapsed_s)`` is called after each shard (for progress bars).
+    ``existing``: :func:`scan_dataset`'s result when the caller has checked the folder already.
+    ``on_shard(n_samples_done_now, elapsed_s)`` is called after each shard simulated now (for
+    progress bars). On KeyboardInterrupt the workers are stopped (no partial file is left) and the
+    interrupt propagates; the shards written so far are kept and a rerun resumes.
     """
     out_dir = Path(out_dir)
+    records = dict(scan_dataset(spec, out_dir) if existing is None else existing)
     out_dir.mkdir(parents=True, exist_ok=True)
     card_path = out_dir / CARD_NAME
-    if card_path.exists():
-        previous = DatasetCard.model_validate(json.loads(card_path.read_text()))
-        if previous.spec != spec:
-            raise ValueError(
-                f"{card_path} describes a different dataset (spec {previous.spec.model_dump()}); "
-                f"use another --out folder or the same parameters to resume"
-            )
-    sim = get_simulator(spec.material)  # builds or loads the operators before forking
-    sim.compliance
-    sim.greens
+    sim = get_simulator(spec.material)
     card = DatasetCard(
-        spec=spec, mesh_hash=sim.mesh.content_hash, n_nodes=sim.mesh.n_nodes, formulation=sim.formulation
+        spec=spec, mesh_hash=sim.mesh.content_hash, n_nodes=sim.mesh.n_nodes, formulation=sim.formulation,
+        shards=[records[i] for i in sorted(records)],
     )
-    records: dict[int, ShardRecord] = {}
-    todo = []
-    for index in range(spec.n_shards):
-        path = shard_path(out_dir, index)
-        rec = _read_shard_record(path, spec.shard_count(index)) if path.exists() else None
-        if rec is None:
-            todo.append(index)
-        else:
-            records[index] = rec
+    todo = [index for index in range(spec.n_shards) if index not in records]
+    if todo:  # builds or loads the operators before forking
+        sim.compliance
+        sim.greens
     start = time.perf_counter()
 
     def done(index: int, rec: ShardRecord) -> None:
@@ -280,9 +421,14 @@ def generate_dataset(
         import multiprocessing as mp
 
         ctx = mp.get_context("fork")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for index, rec in pool.map(_worker_shard, [(spec, i, str(out_dir)) for i in todo]):
-                done(index, rec)
+        with ctx.Pool(min(workers, len(todo)), initializer=_worker_init) as pool:
+            try:
+                for index, rec in pool.imap_unordered(_worker_shard, [(spec, i, str(out_dir)) for i in todo]):
+                    done(index, rec)
+            finally:  # also on Ctrl-C or an error: stop the workers now, drop a shard half-written
+                pool.terminate()
+                for partial in out_dir.glob(".shard_*.partial.npz"):
+                    partial.unlink(missing_ok=True)
     card.counts_per_indenter, card.depth_histogram_mm = _summaries(spec, out_dir)
     card.complete = True
     write_json(card_path, card.model_dump(mode="json"))
