@@ -292,10 +292,15 @@ def test_an_interrupted_add_leaves_no_version_folder(plugin_copy, monkeypatch):
     monkeypatch.undo()
     (plugin_copy / "adapted" / "v1").mkdir()  # an orphan, as a killed process may leave
     assert versions.add_version(plugin, stage, RECORD).version == 2
-    killed = plugin_copy / "adapted" / f".staging-{2 ** 22 + 1}"  # above Linux's largest pid: not running
+    import socket
+
+    host = socket.gethostname()
+    killed = plugin_copy / "adapted" / f".staging-{host}-{2 ** 22 + 1}"  # above Linux's largest pid
     killed.mkdir()
+    elsewhere = plugin_copy / "adapted" / f".staging-another-host-{2 ** 22 + 1}"  # a shared folder
+    elsewhere.mkdir()
     shutil.rmtree(versions.staging_folder(plugin))
-    assert not killed.exists()
+    assert not killed.exists() and elsewhere.exists()
     assert _history(plugin_copy)["active"] == 2
 
 

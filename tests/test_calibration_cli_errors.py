@@ -368,6 +368,11 @@ def test_shading_folds_are_checked_before_the_model_is_written(tmp_path, shared_
                                         data / "annotate.csv", "--folds", "1")))
     assert "--folds" in msg and "got 1" in msg
     assert not out.exists()
+    # more folds than presses: known only once the presses are read, still before the fit
+    msg = _error(_invoke(*_shading_args(data / "background.png", data, out, "--annotations",
+                                        data / "annotate.csv", "--folds", "99")))
+    assert "--folds must lie in [2, 42]" in msg and "got 99" in msg
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------------------ 7. messages

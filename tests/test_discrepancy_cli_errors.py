@@ -218,7 +218,12 @@ def test_outputs_are_checked_before_the_analysis(tmp_path, monkeypatch, no_analy
     out, text = _invoke(*base, "--report", "rep", "--overwrite")
     assert out.exit_code == 2 and "rep holds notes.txt, which is not part of a report" in text
     out, text = _invoke(*base, "--report", ".", "--overwrite")
-    assert out.exit_code == 2 and "holds m.npz, an input of this command" in text
+    assert out.exit_code == 2 and "current folder or one above it" in text
+    Path("sub").mkdir()
+    Path("m.npz").rename("sub/m.npz")
+    out, text = _invoke(*[("sub/m.npz" if a == "m.npz" else a) for a in base], "--report", "sub",
+                        "--overwrite")
+    assert out.exit_code == 2 and "holds sub/m.npz, an input of this command" in text
     assert (rep / "report.md").read_text() == "an earlier report"
 
 
@@ -234,8 +239,16 @@ def test_a_failed_report_leaves_the_existing_folder_as_it_was(tmp_path, monkeypa
         raise OSError("disk full")
 
     monkeypatch.setattr(report, "_write_report_files", half)
-    with pytest.raises(FileExistsError, match="rep exists: pass --overwrite"):
+    with pytest.raises(report.OutputPathError, match="rep exists: pass --overwrite"):
         report.write_report(None, rep)
+    (rep / "notes.txt").write_text("the user's")            # not a report's file: never replaced
+    with pytest.raises(report.OutputPathError, match="notes.txt, which is not part of a report"):
+        report.write_report(None, rep, overwrite=True)
+    (rep / "notes.txt").unlink()
+    monkeypatch.chdir(rep)
+    with pytest.raises(report.OutputPathError, match="current folder"):
+        report.write_report(None, ".", overwrite=True)
+    monkeypatch.chdir(tmp_path)
     with pytest.raises(OSError, match="disk full"):
         report.write_report(None, rep, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]  # no staging folder left

@@ -38,6 +38,19 @@ def test_pad_export_offers_only_formats_it_writes(tmp_path):
     assert not list(tmp_path.iterdir())                         # nothing written, nothing partial
 
 
+def test_pad_export_writes_glb_in_metres_and_the_rest_in_mm(tmp_path):
+    import trimesh
+
+    from tactile_deploy.pad.asset import load_pad
+
+    radius_mm = float(np.abs(load_pad().vertices[:, 0]).max())
+    for suffix, unit in ((".glb", 1e-3), (".ply", 1.0)):
+        out = tmp_path / f"pad{suffix}"
+        assert runner.invoke(app, ["pad", "export", "--out", str(out)]).exit_code == 0
+        mesh = trimesh.load(out, force="mesh", process=False)
+        assert np.abs(mesh.vertices[:, 0]).max() == pytest.approx(radius_mm * unit, rel=1e-6)
+
+
 def test_pad_export_unknown_pad_lists_the_shipped_ones(tmp_path):
     for args in (["pad", "export", "--out", str(tmp_path / "p.vtu"), "--pad", "nosuch"],
                  ["pad", "info", "--pad", "nosuch"]):
@@ -139,6 +152,11 @@ def test_plugins_copy_names_the_copy_after_its_folder(tmp_path, monkeypatch, cap
     assert "manifest name" not in caplog.text                  # no mismatch warning on use
     assert mine.name == "mycopy" and mine.folder == tmp_path / "mycopy"
     assert same.folder == tmp_path / "gelslim2"                 # shadows the shipped one
+    # `--source virtual` on the renamed copy: the virtual sensor it was calibrated on
+    from tactile_deploy.runtime.sources.config import parse_source
+    from tactile_deploy.runtime.sources.factory import make_source
+
+    assert make_source(parse_source("virtual"), mine).sensor_name == "gelslim2"
 
     text = _clean_error(runner.invoke(app, ["plugins", "copy", "gelslim2", str(tmp_path / "My Copy")]))
     assert "'My Copy'" in text and "field 'name'" in text

@@ -165,9 +165,15 @@ def test_data_cache_of_other_settings_is_refused(tmp_path):
 
     cache = tmp_path / "data.npz"
     cfg = DataConfig.model_validate({"synthetic": SYNTHETIC, "cache_file": str(cache)})
-    write_npz(cache, depth_mm=np.zeros((2, 8, 8), np.float32))
-    with pytest.raises(UsageError, match="holds no record of the settings"):
+    write_npz(cache, depth_mm=np.zeros((2, 8, 8), np.float32), source=np.array("synthetic seed=4 rank=0"))
+    with pytest.raises(UsageError, match=r"holds other data .*seed=4.*this config: seed 9"):
         check_data(cfg)
+    # an older cache without its settings: reused when its seed, rank and size are the config's
+    n = cfg.synthetic.n_samples
+    write_npz(cache, depth_mm=np.zeros((n, 8, 8), np.float32), displacement_mm=np.zeros((n, 5, 3), np.float32),
+              contact_id=np.arange(n), indenter=np.array(["sphere_r4"] * n),
+              source=np.array(f"synthetic seed={cfg.synthetic.seed} rank=0"))
+    assert len(load(cfg).depth_mm) == n
     other = cfg.synthetic.model_copy(update={"n_samples": 32, "seed": 3})
     write_npz(cache, depth_mm=np.zeros((2, 8, 8), np.float32), spec=np.array(json.dumps(cache_spec(other))))
     with pytest.raises(UsageError) as e:
@@ -306,8 +312,11 @@ def test_ctrl_c_during_training_then_resume(tiny_run, tmp_path, capsys):
     long = {**cfg, "run_dir": str(run), "image_vae": {**STAGE, "epochs": 100000}}
     path = _write(tmp_path / "long.json", long)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    # as from a terminal: SIGINT handled by default even when this test runner was started with it
+    # ignored (a background job), which the child would otherwise inherit
     proc = subprocess.Popen([sys.executable, "-m", "training", "train", "--config", str(path)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     for line in proc.stdout:
         if line.startswith("[image_vae] epoch 3/"):  # the checkpoint of epoch 2 is on disk

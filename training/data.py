@@ -15,6 +15,7 @@ contact) and whole contacts go to the held-out set, so no press is in both.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import zipfile
 from dataclasses import dataclass
@@ -24,6 +25,8 @@ import numpy as np
 
 from training.config import DataConfig, SyntheticData
 from training.errors import UsageError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -309,8 +312,7 @@ def _cached_data(cfg: DataConfig, rank: int, world: int, read: bool = True) -> C
     try:
         with np.load(cache, allow_pickle=False) as d:
             if "spec" not in d.files:
-                raise UsageError(f"{where} holds no record of the settings its data were made with; delete it (it "
-                                 "is made again), or set another data.cache_file")
+                return _cache_without_spec(d, cfg, rank, where, read)
             have, want = json.loads(str(d["spec"])), cache_spec(cfg.synthetic, rank)
             diff = [k for k in want if have.get(k) != want[k]]
             if diff:
@@ -326,6 +328,23 @@ def _cached_data(cfg: DataConfig, rank: int, world: int, read: bool = True) -> C
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
         raise UsageError(f"{where} is not a readable data cache ({type(e).__name__}: {e}); delete it (it is "
                          "made again), or set another data.cache_file") from None
+
+
+def _cache_without_spec(d, cfg: DataConfig, rank: int, where: str, read: bool) -> ContactData | None:
+    """A cache written before caches recorded their settings: reused (with a warning) when its
+    generator seed, rank and size are this config's, refused otherwise."""
+    spec = cfg.synthetic
+    source, n = str(d["source"]), len(d["depth_mm"])
+    words = source.split()
+    if f"seed={spec.seed}" not in words or f"rank={rank}" not in words or n != spec.n_samples:
+        raise UsageError(f"{where} holds other data ({source!r}, {n} samples; this config: seed {spec.seed}, "
+                         f"rank {rank}, {spec.n_samples} samples); delete it (it is made again for this config), "
+                         "or set another data.cache_file to keep it")
+    log.warning("%s records no generator settings (an older cache); reused since its seed, rank and size are "
+                "this config's: delete it if the indenters or pose ranges changed", where)
+    if not read:
+        return None
+    return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], source)
 
 
 def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> ContactData:

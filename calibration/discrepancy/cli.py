@@ -105,6 +105,8 @@ def discrepancy_command(
 
         try:
             files = write_report(result, report, overwrite=overwrite)
+        except OutputPathError as e:
+            fail(str(e))
         except OSError as e:
             fail(f"the report could not be written into {report}: {e}")
         err_console.print(f"report: {files[0]} ({len(files)} files)")

@@ -13,6 +13,7 @@ verdicts are written as text beside the figures and into their marked blocks of 
 from __future__ import annotations
 
 import argparse
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -30,7 +31,7 @@ def _markers(doc: Path, name: str) -> tuple[str, str]:
 
 def fill_block(doc: Path, name: str, text: str) -> None:
     """Replace the fenced text between ``<!-- example:NAME -->`` and its end marker in ``doc``."""
-    from tactile_deploy.atomic import write_text
+    from tactile_deploy.atomic import atomic_path, write_text
 
     begin, end = _markers(doc, name)
     head, rest = doc.read_text().split(begin, 1)
@@ -70,8 +71,10 @@ def main(argv=None) -> None:
         save_measured(Path(tmp) / "presses.npz", data)
         opts = DiscrepancyOptions(workers=args.workers)
         before = find_discrepancy(sensor, data, opts)
-        write_report(before, args.out, overwrite=True)  # every file in it is made here
-        (args.out / "report.md").unlink()
+        for path in write_report(before, Path(tmp) / "report"):  # the figures and verdict.json
+            if path.name != "report.md":
+                with atomic_path(args.out / path.name) as dst:
+                    shutil.copyfile(path, dst)
         applied = apply_effect("gelslim1", sensor.config, before.verification.spec,
                                {"example": True}, Path(tmp))
         updated = VirtualSensor(load_sensor_config(applied.path), simulator=sensor.simulator)

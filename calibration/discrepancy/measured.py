@@ -266,7 +266,7 @@ def load_measured(path: str | os.PathLike) -> MeasuredData:
             raise MeasuredDataError(f"{path}: field 'indenter' must be (N,) strings (one library "
                                     f"name or mesh path per sample), got {names.shape} "
                                     f"{names.dtype}; save it as np.array(names, dtype=str)")
-        indenter = [str(s) for s in names]
+        indenter = [s.decode() if isinstance(s, bytes) else str(s) for s in names.tolist()]
         n = len(indenter)
 
         def per_sample(name, default=np.nan):

@@ -39,6 +39,11 @@ def check_report_folder(folder: str | os.PathLike, *, overwrite: bool,
     if folder.name.startswith("-"):
         raise OutputPathError(f"--report {folder}: that looks like an option, not a folder name; "
                               "give the folder name right after --report")
+    here = Path.cwd().resolve()
+    if folder.resolve() == here or folder.resolve() in here.parents or not folder.resolve().name:
+        raise OutputPathError(f"--report {folder} is the current folder or one above it: the "
+                              "report replaces its folder as a whole; give a new folder name, "
+                              "e.g. --report report")
     check_not_input(folder, "--report", inputs)
     for given in inputs:
         if given is not None and folder.resolve() in Path(given).resolve().parents:
@@ -209,14 +214,9 @@ def write_report(result: DiscrepancyResult, folder: str | Path,
                  overwrite: bool = False) -> list[Path]:
     """Write the report folder; returns the files written. It is made in a staging folder beside
     ``folder`` and renamed into place when complete; an existing non-empty ``folder`` is
-    replaced only with ``overwrite`` (else FileExistsError)."""
-    folder = Path(folder)
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} exists: pass --overwrite to replace it, or choose "
-                              "another --report")
-    if folder.exists() and not folder.is_dir():
-        raise FileExistsError(f"--report {folder} is a file, not a folder: choose another "
-                              "--report (a folder name)")
+    replaced only with ``overwrite`` and only when it holds a report's files alone (else
+    :class:`~calibration.outputs.OutputPathError`, see :func:`check_report_folder`)."""
+    folder = check_report_folder(folder, overwrite=overwrite).resolve()
     staging = folder.parent / f".{folder.name}.partial-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)

@@ -582,8 +582,11 @@ def step_fem(ctx: Context) -> Outcome:
                "(about 20 s each the first time, then cached)")
     bank = OperatorBank(load_pad(ctx.config.family), grid_nu=tuple(cfg.nu_grid))
     cam = DepthCamera()
-    res = fit_fem_parameters(contacts, bank, cam, method=cfg.method, bootstrap=cfg.bootstrap,
-                             fit_depth_offset=cfg.fit_depth_offset)
+    try:
+        res = fit_fem_parameters(contacts, bank, cam, method=cfg.method, bootstrap=cfg.bootstrap,
+                                 fit_depth_offset=cfg.fit_depth_offset)
+    except ValueError as e:  # contacts the FEM cannot reproduce (e.g. no force at a contact)
+        raise StepError(f"FEM fit: {e}; redo the presses step (--redo presses)") from None
     E = res.E_mpa if res.E_mpa is not None else cfg.prior_E_mpa
     source = (f"calibrated by tactile-deploy calibrate: nu {res.nu_note}; E {res.E_note}"
               if res.E_mpa is not None else

@@ -255,7 +255,11 @@ def run_wizard(sensor: str, *, source: str, rig: str | None, gauge: str | None,
            + (f", rig {rig}" if rig else ", presses by hand") + f"; work folder {wf.folder}")
     try:
         if station is None:
-            station = _open_station(source, rig, gauge, config)
+            try:
+                station = _open_station(source, rig, gauge, config)
+            except WizardError as e:  # resuming: what is done stays done
+                raise WizardError(f"{e}; the steps done so far are kept in {wf.folder}: fix the "
+                                  "source or rig and run the same command again") from None
         ui.say(f"station: {station.description}, {station.image_size[0]} x "
                f"{station.image_size[1]} px")
         ctx = Context(sensor, config, station, wf, ui, state, Path(out), overwrite, model)

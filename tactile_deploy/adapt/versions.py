@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import socket
 from pathlib import Path
 from typing import Callable
 
@@ -158,7 +159,7 @@ def add_version(plugin, staging: Path, record: dict) -> VersionRecord:
     os.replace(staging, target)  # everything is checked and computed: only the rename and the history remain
     try:
         write_json(history_path(plugin), history.model_dump(mode="json"))
-    except BaseException:
+    except OSError:
         os.replace(target, staging)  # no version folder that the history does not name
         raise
     return rec
@@ -169,11 +170,12 @@ def staging_folder(plugin) -> Path:
     that were killed are removed)."""
     root = Path(plugin.folder) / ADAPTED_DIR
     root.mkdir(exist_ok=True)
-    for old in root.glob(".staging-*"):
-        pid = old.name.removeprefix(".staging-")
+    host = socket.gethostname()
+    for old in root.glob(f".staging-{host}-*"):  # only this machine's: the folder may be shared
+        pid = old.name.removeprefix(f".staging-{host}-")
         if pid.isdigit() and int(pid) != os.getpid() and not _running(int(pid)):
             shutil.rmtree(old, ignore_errors=True)
-    path = root / f".staging-{os.getpid()}"
+    path = root / f".staging-{host}-{os.getpid()}"
     if path.exists():
         shutil.rmtree(path)
     path.mkdir()
@@ -218,6 +220,8 @@ def rollback(plugin, dry_run: bool = False,
     to = stack.pop() if stack else None
     while to is not None:
         problem = _usable(plugin, by_version[to])
+        if problem is None and by_version[to].family_model_sha256 != plugin.manifest.model.sha256:
+            problem = "was adapted from another family model than the plugin's (run would ignore it)"
         if problem is None:
             break
         warn(f"version {to} of plugin {plugin.name!r} {problem}: skipped, going back further")

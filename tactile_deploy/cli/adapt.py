@@ -130,7 +130,7 @@ def _switch_version(plugin, rollback: bool, activate: int | None, dry_run: bool)
     change = f"{name.get(was, f'version {was}')} -> {name.get(now, f'version {now}')}"
     if dry_run:
         console.print(f"dry run: {plugin.name} would go {change}; nothing written")
-    elif was == now:
+    elif was == now and not rollback:
         console.print(f"{plugin.name}: version {now} is already active; nothing changed")
     else:
         console.print(f"{plugin.name}: {change} (active now; all versions kept in {plugin.folder / 'adapted'}; "

@@ -90,7 +90,6 @@ def run_command(
     if out is not None and str(out).startswith("-"):
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")
-    opened: list = []
     try:
         plugin = SensorPlugin.load(sensor)
         if source is None:
@@ -101,10 +100,11 @@ def run_command(
             config, from_manifest = parse_source(source, loop=loop), False
         predictor = MeshPredictor.from_plugin(plugin, adapted=False if family_model else None,
                                               threads=threads, providers=providers)
-        # the source is opened before --out is made: a wrong source leaves no folder behind
+        # the source is opened once (and closed) before --out is made: a wrong source leaves no
+        # folder behind; the run opens it again (a camera does not run and drop frames meanwhile)
         src = make_source(config, plugin, from_manifest=from_manifest)
         src.connect()
-        opened.append(src)
+        src.disconnect()
         out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
         preview_dir = None
         if view and out_dir is None:
@@ -134,16 +134,13 @@ def run_command(
                               f"topology/{plugin.name})")
     except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
             FrameError, FileNotFoundError) as e:
-        _close(opened)
         fail(str(e))
-    except OSError as e:  # e.g. a cache folder that cannot be made
-        _close(opened)
-        fail(f"{e}; check the path's permissions (the cache folder moves with "
-             "TACTILE_DEPLOY_CACHE_DIR), or run with --no-forces")
+    except OSError as e:  # a file that cannot be read or written
+        where = f" ({e.filename})" if e.filename else ""
+        fail(f"{e.strerror or e}{where}: check that the file exists and its permissions")
     except Exception as e:  # e.g. the publisher's bind error
         from tactile_deploy.runtime.publish import PublishError
 
-        _close(opened)
         if isinstance(e, PublishError):
             fail(str(e))
         raise
@@ -198,11 +195,6 @@ def run_command(
 
 #: onnxruntime execution providers `--providers` accepts.
 PROVIDERS = ("auto", "cpu", "cuda")
-
-
-def _close(sources) -> None:
-    for src in sources:
-        src.disconnect()
 
 
 def _raise_interrupt(signum, frame) -> None:

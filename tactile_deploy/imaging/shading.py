@@ -362,8 +362,11 @@ def load_shading(path: str | os.PathLike) -> ShadingModel:
             raise ShadingModelError(not_a_model)
         with loaded as z:
             arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError):
+    except (zipfile.BadZipFile, ValueError):
         raise ShadingModelError(not_a_model) from None
+    except OSError as e:
+        raise ShadingModelError(f"{path}: cannot be read ({e.strerror or e}); check its "
+                                "permissions") from None
     for key in ("header_json", "slot_of_bin", "table"):
         if key not in arrays:
             raise ShadingModelError(f"{path}: array '{key}' is missing (has "

@@ -50,7 +50,8 @@ def export_volume(
 def export_surface(
     mesh: PadMesh, path: str | os.PathLike, vertices_mm: np.ndarray | None = None
 ) -> Path:
-    """Write the boundary surface (deformed when ``vertices_mm`` is given) with trimesh."""
+    """Write the boundary surface (deformed when ``vertices_mm`` is given) with trimesh: mm,
+    sensor frame, except GLB, whose unit is the metre (glTF)."""
     import trimesh
 
     path = Path(path)
@@ -59,7 +60,8 @@ def export_surface(
     points = mesh.vertices if vertices_mm is None else np.asarray(vertices_mm, dtype=np.float64)
     if points.shape != mesh.vertices.shape:
         raise ValueError(f"vertices_mm must have shape {mesh.vertices.shape}, got {points.shape}")
-    surface = trimesh.Trimesh(points, mesh.boundary_faces, process=False)
+    scale = 1e-3 if path.suffix.lower() == ".glb" else 1.0
+    surface = trimesh.Trimesh(points * scale, mesh.boundary_faces, process=False)
     magnitude = np.linalg.norm(points - mesh.vertices, axis=1)
     if magnitude.max() > 0:
         import matplotlib

@@ -257,7 +257,10 @@ class Runner:
         return self.summary
 
     def _finish(self, stats) -> None:
-        with _interrupts_held():
+        held: list[int] = []
+        with _interrupts_held(held):
+            if held:
+                self.summary.stopped_by = "interrupted"
             self._finish_outputs(stats)
 
     def _finish_outputs(self, stats) -> None:
@@ -404,14 +407,14 @@ def _csv_field(text: str) -> str:
 
 
 @contextlib.contextmanager
-def _interrupts_held():
+def _interrupts_held(held: list | None = None):
     """Hold Ctrl-C and SIGTERM back while the outputs are finished (a second Ctrl-C would leave
-    frames.csv half-written); signals can only be handled in the main thread, elsewhere this
-    does nothing."""
+    frames.csv half-written); the signals that came are appended to ``held``. Signals can only
+    be handled in the main thread, elsewhere this does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    held = []
+    held = [] if held is None else held
 
     def hold(signum, _frame):
         if not held:

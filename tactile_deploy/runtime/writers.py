@@ -86,6 +86,7 @@ class MeshWriter:
         self.max_mm = float(max_mm)
         self.written = 0
         self.skipped = 0
+        self._count_lock = threading.Lock()  # skipped is counted by the loop and the writer
         self.error: str | None = None
         self._q: queue.Queue = queue.Queue(maxsize=queue_size)
         self._thread = threading.Thread(target=self._work, name="mesh writer", daemon=True)
@@ -96,7 +97,7 @@ class MeshWriter:
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
-            self.skipped += 1
+            self._skip()
             return False
         item = (int(index), np.array(vertices_mm, np.float32))
         if block:
@@ -106,14 +107,18 @@ class MeshWriter:
                     return True
                 except queue.Full:
                     continue
-            self.skipped += 1
+            self._skip()
             return False
         try:
             self._q.put_nowait(item)
             return True
         except queue.Full:
-            self.skipped += 1
+            self._skip()
             return False
+
+    def _skip(self) -> None:
+        with self._count_lock:
+            self.skipped += 1
 
     def _work(self) -> None:
         while True:
@@ -122,7 +127,7 @@ class MeshWriter:
                 return
             index, v = item
             if self.error is not None:      # queued before writing failed
-                self.skipped += 1
+                self._skip()
                 continue
             try:
                 for fmt in self.formats:
@@ -133,7 +138,7 @@ class MeshWriter:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1
             except Exception as e:  # noqa: BLE001 - any failure stops writing, the loop goes on
-                self.skipped += 1
+                self._skip()
                 self.error = (f"writing meshes into {self.folder} failed at frame {index}: "
                               f"{type(e).__name__}: {e}; no further meshes are written")
                 log.error(self.error)

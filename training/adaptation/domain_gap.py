@@ -104,4 +104,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from training.errors import run_command
+
+    raise SystemExit(run_command(main))

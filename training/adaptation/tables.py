@@ -314,4 +314,6 @@ def tables_markdown(results: dict) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from training.errors import run_command
+
+    raise SystemExit(run_command(main))

@@ -1,7 +1,7 @@
 """Train the read-out network of a design and export it (ONNX + model card).
 
     python -m training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
-        --out exported/gelslim_readout.onnx
+        --out exported/gelslim_readout.onnx --overwrite
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
 (features and true depth on each unit's imaging grid) -> 48 x 48-cell crops around each contact

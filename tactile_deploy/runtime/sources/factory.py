@@ -83,7 +83,7 @@ def make_source(config, plugin=None, from_manifest: bool = False, **kwargs) -> F
 
         return NpzSource(_resolve(config.path, plugin, from_manifest), loop=config.loop)
     if isinstance(config, VirtualSourceConfig):
-        name = config.sensor or (plugin.name if plugin is not None else None)
+        name = config.sensor or (_virtual_sensor_of(plugin) if plugin is not None else None)
         if name is None:
             raise SourceError("a virtual source needs a sensor name: --source virtual:NAME or "
                               "--sensor NAME")
@@ -93,3 +93,10 @@ def make_source(config, plugin=None, from_manifest: bool = False, **kwargs) -> F
                                    loop=config.loop)
     forms = ", ".join(SOURCE_FORMS)
     raise SourceError(f"unknown frame source config {config!r}; known kinds: {forms}")
+
+
+def _virtual_sensor_of(plugin) -> str:
+    """The virtual sensor a plugin was calibrated on (its provenance ``source``,
+    ``virtual:NAME``), else the plugin's own name (a copy under another name keeps its sensor)."""
+    source = str(plugin.manifest.provenance.get("source", ""))
+    return source.split(":", 1)[1] if source.startswith("virtual:") else plugin.name
