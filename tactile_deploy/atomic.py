@@ -54,18 +54,18 @@ def write_json(path: str | os.PathLike, obj) -> None:
 
     NaN and infinities, which JSON has no words for, are written as ``null`` (not measured), so
     every file is strict JSON that any parser reads."""
-    text = json.dumps(_finite_or_null(obj), indent=2, sort_keys=False, allow_nan=False)
+    text = json.dumps(finite_or_null(obj), indent=2, sort_keys=False, allow_nan=False)
     write_text(path, text + "\n")
 
 
-def _finite_or_null(obj):
+def finite_or_null(obj):
     """``obj`` with every non-finite float (Python or numpy) replaced by None, recursively."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _finite_or_null(v) for k, v in obj.items()}
+        return {k: finite_or_null(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite_or_null(v) for v in obj]
+        return [finite_or_null(v) for v in obj]
     if isinstance(obj, np.floating):
         return float(obj) if np.isfinite(obj) else None
     return obj

@@ -148,7 +148,7 @@ def test_outputs_of_the_wrong_kind_are_refused_before_any_work(tmp_path):
     folder.mkdir()
     (folder / "keep.txt").write_text("x")
     result = run("simulate", "--indenter", "cone", "--out", folder, "--overwrite")
-    assert_clean_error(result, "--out", "dir.npz", "is a folder", "FILE.npz")
+    assert_clean_error(result, "--out", "dir.npz", "is a folder", "give a file name inside it")
     assert (folder / "keep.txt").read_text() == "x"
 
 
@@ -251,5 +251,5 @@ def test_indenters_list_names_the_kind_option(tmp_path):
 def test_pad_export_into_a_missing_folder_says_what_to_do(tmp_path):
     out = tmp_path / "missing" / "pad.vtu"
     assert_clean_error(run("pad", "export", "--out", out), "missing does not exist",
-                       "create it first or choose another --out")
+                       "create it first, or choose another --out")
     assert not out.parent.exists()

@@ -109,7 +109,7 @@ def camera(
     from rich.table import Table
 
     from calibration.camera.fitting import CalibrationError
-    from calibration.outputs import OutputPathError, check_distinct, check_output_file
+    from tactile_deploy.outputs import OutputPathError, check_distinct, check_output_file
     from tactile_deploy.imaging.camera_mapping import save_mapping
 
     console = Console()
@@ -218,7 +218,7 @@ def make_board(
     from pydantic import ValidationError
 
     from calibration.camera.charuco import CharucoBoardSpec, save_print_sheet
-    from calibration.outputs import OutputPathError, check_output_file
+    from tactile_deploy.outputs import OutputPathError, check_output_file
 
     try:
         check_output_file(out, "--out", overwrite=overwrite, suffixes=(".png",))

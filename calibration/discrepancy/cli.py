@@ -49,7 +49,7 @@ def discrepancy_command(
     from calibration.discrepancy.report import check_report_folder
     from calibration.discrepancy.verdict import verdict_text
     from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
-    from calibration.outputs import OutputPathError
+    from tactile_deploy.outputs import OutputPathError
     from tactile_deploy.cli.common import err_console, fail, prepare_simulator, progress_bar
     from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
     from tactile_deploy.sensors.config import SensorConfigError

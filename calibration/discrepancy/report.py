@@ -21,7 +21,7 @@ import numpy as np
 
 from calibration.discrepancy.verdict import verdict_text
 from calibration.discrepancy.workflow import DiscrepancyResult
-from calibration.outputs import OutputPathError, check_not_input
+from tactile_deploy.outputs import OutputPathError, check_not_input
 from tactile_deploy.atomic import atomic_path, replace_folder, write_text
 
 FIGURES = ("residual_maps.png", "gap_vs_depth_position.png", "candidates.png", "fingerprint.png")
@@ -34,7 +34,7 @@ def check_report_folder(folder: str | os.PathLike, *, overwrite: bool,
     """Check, before any work, that ``folder`` (``--report``) may be written: not a file, not an
     input, its parent folder exists, and an existing non-empty folder only with ``overwrite``
     and only when it holds a report's files alone (the whole folder is replaced). Raises
-    :class:`~calibration.outputs.OutputPathError` saying what to do."""
+    :class:`~tactile_deploy.outputs.OutputPathError` saying what to do."""
     folder = Path(folder)
     if folder.name.startswith("-"):
         raise OutputPathError(f"--report {folder}: that looks like an option, not a folder name; "
@@ -215,7 +215,7 @@ def write_report(result: DiscrepancyResult, folder: str | Path,
     """Write the report folder; returns the files written. It is made in a staging folder beside
     ``folder`` and renamed into place when complete; an existing non-empty ``folder`` is
     replaced only with ``overwrite`` and only when it holds a report's files alone (else
-    :class:`~calibration.outputs.OutputPathError`, see :func:`check_report_folder`)."""
+    :class:`~tactile_deploy.outputs.OutputPathError`, see :func:`check_report_folder`)."""
     folder = check_report_folder(folder, overwrite=overwrite).resolve()
     staging = folder.parent / f".{folder.name}.partial-{os.getpid()}"
     if staging.exists():

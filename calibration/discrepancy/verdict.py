@@ -17,25 +17,19 @@ in mm. Gains are held-out log-likelihood ratios x 2 in units of the noise varian
 from __future__ import annotations
 
 import json
-import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from tactile_deploy.atomic import finite_or_null
 
 FORMAT_VERSION = 2
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-def finite(obj):
-    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite(v) for v in obj]
-    return obj
+#: ``obj`` with every non-finite float replaced by None (JSON has no NaN).
+finite = finite_or_null
 
 
 class CandidateReport(BaseModel):

@@ -178,7 +178,7 @@ def fem_command(
     several values."""
     from calibration.fem_fit.fit import fit_fem_parameters
     from calibration.fem_fit.operator_bank import OperatorBank
-    from calibration.outputs import OutputPathError, check_output_file
+    from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.atomic import write_json
     from tactile_deploy.camera.depth import DepthCamera
     from tactile_deploy.pad.asset import load_pad

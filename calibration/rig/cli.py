@@ -57,7 +57,7 @@ def simulate(
                                    "--write-config file."),
 ) -> None:
     """Start a simulated rig on two pseudo-terminals, print their names, run until Ctrl-C."""
-    from calibration.outputs import OutputPathError, check_output_file
+    from tactile_deploy.outputs import OutputPathError, check_output_file
     from calibration.rig.simulated import HertzForce, SimulatedRig
 
     if write_config is not None:

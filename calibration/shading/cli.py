@@ -55,7 +55,7 @@ def shading_command(
 
     import numpy as np
 
-    from calibration.outputs import OutputPathError, check_distinct, check_output_file
+    from tactile_deploy.outputs import OutputPathError, check_distinct, check_output_file
     from tactile_deploy.imaging.shading import DepthFromShading, save_shading
 
     from .circles import ContactNotFoundError

@@ -39,19 +39,18 @@ def pad_export(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Export the rest pad mesh (volume via meshio, surface via trimesh)."""
-    from tactile_deploy.pad.export import SURFACE_SUFFIXES, VOLUME_SUFFIXES, export_surface, export_volume
+    from tactile_deploy.outputs import OutputPathError, check_output_file
+    from tactile_deploy.pad.export import (
+        SURFACE_SUFFIXES,
+        VOLUME_SUFFIXES,
+        export_surface,
+        export_volume,
+    )
 
-    if out.suffix.lower() not in VOLUME_SUFFIXES + SURFACE_SUFFIXES:
-        got = repr(out.suffix) if out.suffix else "no suffix"
-        fail(f"--out {out}: the suffix must name a mesh format, got {got}; use a volume suffix "
-             f"({', '.join(VOLUME_SUFFIXES)}) or a surface suffix ({', '.join(SURFACE_SUFFIXES)})")
-    if out.is_dir():
-        fail(f"--out {out} is a folder; give a file path ending in a mesh suffix")
-    if out.exists() and not overwrite:
-        fail(f"{out} exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        state = "is a file, not a folder" if out.parent.exists() else "does not exist"
-        fail(f"output folder {out.parent} {state}; create it first or choose another --out")
+    try:  # a mesh suffix (volume or surface), a file in an existing folder, --overwrite to replace
+        check_output_file(out, "--out", overwrite=overwrite, suffixes=VOLUME_SUFFIXES + SURFACE_SUFFIXES)
+    except OutputPathError as e:
+        fail(str(e))
     mesh = _load_pad(name)
     try:
         if out.suffix.lower() in SURFACE_SUFFIXES:

@@ -9,7 +9,13 @@ from typing import Optional
 
 import typer
 
-from tactile_deploy.cli.common import console, err_console, fail, prepare_simulator, progress_bar
+from tactile_deploy.cli.common import (
+    console,
+    err_console,
+    fail,
+    prepare_simulator,
+    progress_bar,
+)
 
 FRICTION_CHOICES = ("frictionless", "stick")
 
@@ -133,17 +139,17 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
 
     from tactile_deploy.atomic import write_npz
     from tactile_deploy.indenters import ContactPose, get_indenter
-    from tactile_deploy.simulation.contact import ContactError, get_simulator, simulate_contact
+    from tactile_deploy.outputs import OutputPathError, check_output_file
+    from tactile_deploy.simulation.contact import (
+        ContactError,
+        get_simulator,
+        simulate_contact,
+    )
 
-    if out.suffix != ".npz":
-        fail(f"--out must end in .npz for one contact, got {out}")
-    if out.is_dir():
-        fail(f"--out {out} is a folder; give a FILE.npz path for one contact")
-    if out.exists() and not overwrite:
-        fail(f"{out} exists; pass --overwrite to replace it or choose another --out")
-    if not out.parent.is_dir():
-        state = "is a file, not a folder" if out.parent.exists() else "does not exist"
-        fail(f"output folder {out.parent} {state}; create it first or choose another --out")
+    try:  # one contact: FILE.npz in an existing folder, --overwrite to replace it
+        check_output_file(out, "--out", overwrite=overwrite, suffixes=(".npz",))
+    except OutputPathError as e:
+        fail(str(e))
     for option, value in (("--x", x), ("--y", y), ("--theta", theta), ("--depth", depth)):
         if not math.isfinite(value):
             fail(f"{option} must be a finite number ({'degrees' if option == '--theta' else 'mm'}), got {value}")
@@ -171,7 +177,12 @@ def _batch(n, indenters, seed, shard_size, depth_range, workers, material, out: 
 
     from tactile_deploy.simulation.contact import get_simulator
     from tactile_deploy.simulation.dataset import (
-        DEPTH_LIMIT_MM, SPEC_OPTIONS, DatasetSpec, generate_dataset, scan_dataset, shard_path,
+        DEPTH_LIMIT_MM,
+        SPEC_OPTIONS,
+        DatasetSpec,
+        generate_dataset,
+        scan_dataset,
+        shard_path,
     )
 
     if n <= 0:

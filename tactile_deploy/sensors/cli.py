@@ -18,18 +18,18 @@ def single_sensor_contact(sensor: str, rgb: bool, seed: int, indenter: str, pres
 
     from tactile_deploy.atomic import atomic_path, write_npz
     from tactile_deploy.indenters import ContactPose, get_indenter
+    from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.sensors.catalog import UnknownSensorError, load_sensor
     from tactile_deploy.sensors.config import SensorConfigError
     from tactile_deploy.simulation.contact import ContactError
 
-    if out.suffix != ".npz":
-        fail(f"--out must end in .npz for one contact, got {out}")
     png = out.with_suffix(".png")
-    for path in (out, png) if rgb else (out,):
-        if path.exists() and not overwrite:
-            fail(f"{path} exists; pass --overwrite to replace it or choose another --out")
-    if not out.parent.exists():
-        fail(f"output folder {out.parent} does not exist; create it first")
+    try:  # FILE.npz (and FILE.png with the frame) in an existing folder, --overwrite to replace
+        check_output_file(out, "--out", overwrite=overwrite, suffixes=(".npz",))
+        if rgb:
+            check_output_file(png, "--out (its frame)", overwrite=overwrite)
+    except OutputPathError as e:
+        fail(str(e))
     try:
         virtual = load_sensor(sensor)
         ind = get_indenter(indenter, pressing_face=pressing_face)

@@ -57,7 +57,8 @@ def check_output_file(path: str | os.PathLike, option: str, *, overwrite: bool,
     if path.is_dir():
         raise OutputPathError(f"{option} {path} is a folder: give a file name inside it")
     if not path.parent.is_dir():
-        raise OutputPathError(f"{option} {path}: folder {path.parent} does not exist: create it "
+        state = "is a file, not a folder" if path.parent.exists() else "does not exist"
+        raise OutputPathError(f"{option} {path}: folder {path.parent} {state}: create it "
                               f"first, or choose another {option}")
     if path.exists() and not overwrite:
         raise OutputPathError(f"{path} exists: pass --overwrite to replace it, or choose another "
