@@ -6,7 +6,7 @@
 * surface: STL, PLY, OBJ, GLB, ... through trimesh (the boundary triangles, outward normals),
   with per-vertex displacement magnitude as colour where the format keeps colours.
 
-All files are written atomically. Units mm, sensor frame.
+All files are written atomically. Sensor frame; units mm, except GLB in metres (glTF's unit).
 """
 
 from __future__ import annotations
