@@ -235,6 +235,13 @@ def test_calibrate_fem_on_the_wizard_presses(wizard_run):
     assert doc["n_contacts"] >= 14
     res = CliRunner().invoke(app, ["calibrate", "fem", "--contacts", str(folder / "none.csv")])
     assert res.exit_code == 2 and "none.csv not found" in res.output
+    # into the work folder: a new file is fine, a file the step reads is never replaced
+    work = folder / "acme.calibration"
+    args = ["calibrate", "fem", "--work", str(work), "--nu-grid", "0.48", "--bootstrap", "0", "--out"]
+    res = CliRunner().invoke(app, [*args, str(work / "camera_mapping.json"), "--overwrite"])
+    assert res.exit_code == 2 and "is also an input" in " ".join(res.output.split())
+    res = CliRunner().invoke(app, [*args, str(work / "fem_cli.json")])
+    assert res.exit_code == 0, res.output
 
 
 # ------------------------------------------------------------------------------ interactive

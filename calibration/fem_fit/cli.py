@@ -189,7 +189,8 @@ def fem_command(
         _fail(f"--method must be brent or cem, got {method!r}")
     grid = _nu_grid(nu_grid)
     if out is not None:
-        inputs = [contacts] + (list(work.iterdir()) if work is not None and work.is_dir() else [])
+        read = ("presses.npz", "reference.npz", "camera_mapping.json", "shading.npz")  # what --work gives
+        inputs = [contacts] + ([work / name for name in read] if work is not None else [])
         try:
             check_output_file(out, "--out", overwrite=overwrite, inputs=inputs,
                               suffixes=(".json",))

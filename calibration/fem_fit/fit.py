@@ -258,10 +258,10 @@ def fit_fem_parameters(
             evals += more
             curve = curve2  # the objective at the final contacts
 
-    # bootstrap over contacts (Brent, poses fixed): the spread of nu
+    # bootstrap over contacts (Brent, poses fixed): the spread of nu (none when nu is fixed)
     rng = np.random.default_rng(seed)
     nus = []
-    for _ in range(bootstrap):
+    for _ in range(bootstrap if hi - lo >= 1e-9 else 0):
         idx = rng.integers(len(contacts), size=len(contacts))
         sub_c = [contacts[i] for i in idx]
         sub_p = [poses[i] for i in idx]
