@@ -29,16 +29,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _check_output_json(path: str, option: str) -> Path:
-    """``path`` may be written as a JSON file (its folder exists, it is not a folder)."""
-    out = Path(path)
-    if out.is_dir():
-        raise UsageError(f"{option} {out} is a folder: give a file name inside it")
-    if out.suffix != ".json" or out.name.startswith("-"):
-        raise UsageError(f"{option} {out}: the file name must end in .json; choose another {option}")
-    if not out.parent.is_dir():
-        raise UsageError(f"{option} {out}: folder {out.parent} does not exist: create it first, or choose another "
-                         f"{option}")
-    return out
+    """``path`` may be written as a JSON file (its folder exists, it is not a folder); an existing
+    file is replaced (:func:`tactile_deploy.outputs.check_output_file`)."""
+    from tactile_deploy.outputs import OutputPathError, check_output_file
+
+    try:
+        return check_output_file(path, option, overwrite=True, suffixes=(".json",))
+    except OutputPathError as e:
+        raise UsageError(str(e)) from None
 
 
 def _run_folder(path: str, option: str = "--run") -> Path:
