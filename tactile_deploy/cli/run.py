@@ -52,6 +52,9 @@ def run_command(
                                    "folder without asking."),
     colour_max_mm: float = typer.Option(1.0, "--colour-max-mm", min=1e-3, help="Displacement "
                                         "(mm) at the top of the colour scale."),
+    mcap: Path | None = typer.Option(None, "--mcap", help="Record standard ROS 2 messages (raw "
+                                     "frame, depth, mesh, force, pressure) into this MCAP file "
+                                     "(`ros2 bag play`, Foxglove; needs the [ros] extra)."),
 ) -> None:
     """Turn a sensor's frames into pad meshes live: prints fps and latency; Ctrl-C ends cleanly."""
     from rich.logging import RichHandler
@@ -126,6 +129,8 @@ def run_command(
                                   f"(cached in {path.parent}); --no-forces skips it")
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
+        sinks = _make_sinks(plugin, predictor, mcap=mcap, overwrite=overwrite,
+                            colour_max_mm=colour_max_mm)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -161,7 +166,7 @@ def run_command(
             print(line, file=sys.stderr, flush=True)
 
     runner = Runner(predictor, src, options, forces=estimator, publisher=publisher,
-                    status=status, sensor=plugin.name)
+                    status=status, sensor=plugin.name, sinks=sinks)
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     model = predictor.model_path
     if model.is_relative_to(plugin.folder.resolve()):
@@ -184,7 +189,7 @@ def run_command(
         console.print(f"outputs in {out_dir}")
     elif preview_dir is not None:
         console.print(f"preview in {preview_dir / 'preview.png'}")
-    if summary.write_error:
+    if summary.write_error or any(r.get("error") for r in summary.sinks.values()):
         raise typer.Exit(1)
     if summary.frames == 0 and summary.stopped_by != "interrupted":
         fail(f"no frame of {src.name} became a mesh ({summary.bad_frames} refused, "
@@ -192,6 +197,42 @@ def run_command(
              f"sensor's camera frames ({plugin.name} expects "
              f"{plugin.manifest.camera.image_width_px} x {plugin.manifest.camera.image_height_px} px RGB)",
              code=1)
+
+
+def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
+                colour_max_mm: float) -> list:
+    """The recordings and viewers a run feeds (runtime/sinks.py); refuses before the run starts
+    what cannot work (a missing extra, a file that would be written over)."""
+    from tactile_deploy.runtime.run import RunError
+
+    sinks = []
+    if mcap is not None:
+        _need("mcap", "ros", "--mcap")
+        _need("rosbags", "ros", "--mcap")
+        mcap = Path(mcap).expanduser()
+        _check_output_file(mcap, overwrite, "--mcap", RunError)
+        from tactile_deploy.runtime.ros.mcap_recorder import McapRecorder
+
+        sinks.append(McapRecorder(mcap, plugin.name, predictor.topology,
+                                  colour_max_mm=colour_max_mm))
+    return sinks
+
+
+def _need(module: str, extra: str, option: str) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        fail(f"{option} needs the Python package {module!r}: pip install 'tactile-deploy[{extra}]'")
+
+
+def _check_output_file(path: Path, overwrite: bool, option: str, error) -> None:
+    if path.is_dir():
+        raise error(f"{option} {path} is a folder; give a file name")
+    if path.exists() and not overwrite:
+        raise error(f"{option} {path} already exists; choose another file, or pass --overwrite "
+                    "to replace it")
+    if not path.parent.is_dir():
+        raise error(f"{option} {path}: folder {path.parent} does not exist; create it first")
 
 
 #: onnxruntime execution providers `--providers` accepts.
