@@ -36,8 +36,14 @@ def run_command(
                                 "arrays); comma-separated."),
     publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
                                           "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
-    view: bool = typer.Option(False, "--view", help="Write preview.png (depth map and coloured "
-                              "mesh) about once a second."),
+    view: bool = typer.Option(False, "--view", help="Show the run: `--view` writes preview.png "
+                              "(depth map and coloured mesh) about once a second; `--view live` "
+                              "serves a live 3-D view to a web browser (rerun; needs the [view] "
+                              "extra)."),
+    view_mode: str | None = typer.Argument(None, hidden=True, show_default=False,
+                                           help="`live` after --view."),
+    view_port: int = typer.Option(9090, "--view-port", min=0, max=65535, help="Port of the live "
+                                  "view's page (0: any free port); its data stays on 127.0.0.1."),
     forces: bool = typer.Option(True, "--forces/--no-forces", help="Estimate contact forces "
                                 "(inverse FEM; the first run computes the pad stiffness once, 15-30 s)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
@@ -78,6 +84,8 @@ def run_command(
     from tactile_deploy.runtime.sources.factory import make_source
     from tactile_deploy.runtime.writers import parse_formats
 
+    view_live = _view_mode(view, view_mode)
+    view = view and not view_live
     try:
         fmts = parse_formats(formats)
     except ValueError as e:
@@ -130,7 +138,7 @@ def run_command(
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
         sinks = _make_sinks(plugin, predictor, mcap=mcap, overwrite=overwrite,
-                            colour_max_mm=colour_max_mm)
+                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -144,11 +152,14 @@ def run_command(
     except OSError as e:  # a file that cannot be read or written
         where = f" ({e.filename})" if e.filename else ""
         fail(f"{e.strerror or e}{where}: check that the file exists and its permissions")
-    except Exception as e:  # e.g. the publisher's bind error
+    except Exception as e:  # e.g. the publisher's or the live view's bind error
         from tactile_deploy.runtime.publish import PublishError
 
         if isinstance(e, PublishError):
             fail(str(e))
+        if view_live and "address" in str(e).lower():
+            fail(f"the live view cannot listen on port {view_port}: {e}; pass another "
+                 "--view-port (0: any free port)")
         raise
 
     options = RunOptions(out_dir=out_dir, every=every, formats=fmts, publish=publish, view=view,
@@ -189,6 +200,9 @@ def run_command(
         console.print(f"outputs in {out_dir}")
     elif preview_dir is not None:
         console.print(f"preview in {preview_dir / 'preview.png'}")
+    viewer = next((s for s in sinks if s.name == "live view"), None)
+    if viewer is not None and summary.stopped_by != "interrupted":
+        _keep_serving(viewer)
     if summary.write_error or any(r.get("error") for r in summary.sinks.values()):
         raise typer.Exit(1)
     if summary.frames == 0 and summary.stopped_by != "interrupted":
@@ -199,8 +213,32 @@ def run_command(
              code=1)
 
 
+def _view_mode(view: bool, mode: str | None) -> bool:
+    """True for ``--view live``; ``--view`` alone (or ``--view png``) is the PNG preview."""
+    if mode is None:
+        return False
+    if not view or mode not in ("live", "png"):
+        fail(f"unexpected argument {mode!r}: `run` takes options only (did you mean "
+             "`--view live`?)")
+    return mode == "live"
+
+
+def _keep_serving(viewer) -> None:
+    """After a finite source ended the live view stays up until Ctrl-C (or SIGTERM)."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+        err_console.print(f"the live view stays at {viewer.url} until Ctrl-C")
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
-                colour_max_mm: float) -> list:
+                colour_max_mm: float, view_port: int | None = None) -> list:
     """The recordings and viewers a run feeds (runtime/sinks.py); refuses before the run starts
     what cannot work (a missing extra, a file that would be written over)."""
     from tactile_deploy.runtime.run import RunError
@@ -215,6 +253,15 @@ def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
 
         sinks.append(McapRecorder(mcap, plugin.name, predictor.topology,
                                   colour_max_mm=colour_max_mm))
+    if view_port is not None:
+        _need("rerun", "view", "--view live")
+        from tactile_deploy.runtime.live_view import LiveView
+
+        viewer = LiveView(plugin.name, predictor.topology, web_port=view_port,
+                          colour_max_mm=colour_max_mm)
+        url = viewer.serve()
+        err_console.print(f"live view: open {url} in a web browser")
+        sinks.append(viewer)
     return sinks
 
 
