@@ -32,7 +32,8 @@ def run_command(
                                        "run.json (and previews with --view)."),
     every: int = typer.Option(1, "--every", min=1, help="Write the mesh of every N-th frame."),
     formats: str = typer.Option("ply,vtu", "--format", help="Mesh files to write: ply, obj, glb "
-                                "(surface), vtu (volume); comma-separated."),
+                                "(surface), vtu (volume), npz (vertices, rest_vertices, depth "
+                                "arrays); comma-separated."),
     publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
                                           "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
     view: bool = typer.Option(False, "--view", help="Write preview.png (depth map and coloured "

@@ -322,7 +322,15 @@ class Runner:
             laps.lap("publish")
         if self.writer is not None and frame.index % o.every == 0:
             self.writer.submit(frame.index, pred.vertices_mm,
-                               block=getattr(self.source, "finite", False))
+                               block=getattr(self.source, "finite", False),
+                               depth_mm=pred.depth_mm,
+                               metadata={"sensor": self.sensor, "frame_index": frame.index,
+                                         "t_capture_ns": frame.t_wall_ns,
+                                         "t_source_ns": frame.t_source_ns,
+                                         "source_label": frame.label,
+                                         "ood_score": float(pred.ood_score),
+                                         "total_normal_force_n": None if force is None
+                                         else float(force.total_normal_force_n)})
         if self._csv is not None:
             f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
             label = "" if frame.label is None else _csv_field(frame.label)

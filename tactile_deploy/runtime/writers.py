@@ -2,7 +2,8 @@
 
 Formats (chosen per run): ``ply``, ``obj``, ``glb`` -- the outer surface through trimesh, vertex
 colours by displacement magnitude on a fixed scale; ``vtu`` -- the tet volume through meshio with
-point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. PLY also carries the
+point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``; ``npz`` -- the frame's arrays
+for programs (:func:`write_frame_npz`: ``vertices``, ``rest_vertices``, ``depth``). PLY also carries the
 displacement vector per vertex (``disp_x_mm``, ``disp_y_mm``, ``disp_z_mm``). Units mm, sensor
 frame, except GLB: glTF's unit is the metre, so GLB positions are in metres and its per-vertex
 displacement attributes are ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` (glTF names custom
@@ -15,6 +16,7 @@ further writes are skipped, and :attr:`MeshWriter.error` holds the message; the 
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -29,7 +31,10 @@ log = logging.getLogger(__name__)
 
 SURFACE_FORMATS = ("ply", "obj", "glb")
 VOLUME_FORMATS = ("vtu",)
-FORMATS = SURFACE_FORMATS + VOLUME_FORMATS
+ARRAY_FORMATS = ("npz",)
+FORMATS = SURFACE_FORMATS + VOLUME_FORMATS + ARRAY_FORMATS
+#: Version of the per-frame ``.npz`` layout (:func:`write_frame_npz`).
+FRAME_NPZ_VERSION = 1
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -71,6 +76,32 @@ def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
         meshio.write(tmp, out)
 
 
+def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.ndarray | None,
+                    metadata: dict | None = None) -> None:
+    """One frame's arrays as ``.npz`` (compressed, atomic), the names of ``simulate --out``:
+
+    vertices       (n, 3) float32  mm, sensor frame, deformed (vertex i = pad mesh vertex i)
+    rest_vertices  (n, 3) float32  mm, sensor frame, the undeformed pad mesh
+    depth          (128, 128) float32  mm pushed in along -z, model grid (row 0 = largest y)
+    metadata       () str          JSON: format, version, units, frame, mesh_hash, and what the
+                                   run adds (sensor, frame_index, t_capture_ns, ...)
+    """
+    from tactile_deploy.atomic import write_npz
+    from tactile_deploy.runtime.publish import SENSOR_FRAME
+
+    meta = {"format": "tactile-deploy.frame", "version": FRAME_NPZ_VERSION,
+            "units": {"vertices": "mm", "rest_vertices": "mm", "depth": "mm"},
+            "frame": SENSOR_FRAME, "mesh_hash": topology.mesh_hash,
+            "depth": "mm the surface is pushed in along -z; 128 x 128 over +-17.5 mm, row 0 at the "
+                     "largest y"}
+    meta.update(metadata or {})
+    arrays = {"vertices": np.asarray(vertices_mm, np.float32),
+              "rest_vertices": np.asarray(topology.rest_vertices_mm, np.float32)}
+    if depth_mm is not None:
+        arrays["depth"] = np.asarray(depth_mm, np.float32)
+    write_npz(path, **arrays, metadata=np.array(json.dumps(meta)))
+
+
 class MeshWriter:
     """Background writer of meshes into ``folder`` (module docstring).
 
@@ -92,14 +123,16 @@ class MeshWriter:
         self._thread = threading.Thread(target=self._work, name="mesh writer", daemon=True)
         self._thread.start()
 
-    def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False) -> bool:
+    def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False,
+               depth_mm: np.ndarray | None = None, metadata: dict | None = None) -> bool:
         """Queue a mesh; False when it was skipped (writing has failed, or the queue is full and
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
             self._skip()
             return False
-        item = (int(index), np.array(vertices_mm, np.float32))
+        item = (int(index), np.array(vertices_mm, np.float32),
+                None if depth_mm is None else np.array(depth_mm, np.float32), metadata)
         if block:
             while self._thread.is_alive() and self.error is None:
                 try:
@@ -125,7 +158,7 @@ class MeshWriter:
             item = self._q.get()
             if item is None:
                 return
-            index, v = item
+            index, v, depth, meta = item
             if self.error is not None:      # queued before writing failed
                 self._skip()
                 continue
@@ -134,6 +167,8 @@ class MeshWriter:
                     path = self.folder / f"mesh_{index:06d}.{fmt}"
                     if fmt in VOLUME_FORMATS:
                         write_volume(path, self.topology, v)
+                    elif fmt in ARRAY_FORMATS:
+                        write_frame_npz(path, self.topology, v, depth, meta)
                     else:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1
