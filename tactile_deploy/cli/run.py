@@ -247,8 +247,13 @@ def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
     if mcap is not None:
         _need("mcap", "ros", "--mcap")
         _need("rosbags", "ros", "--mcap")
-        mcap = Path(mcap).expanduser()
-        _check_output_file(mcap, overwrite, "--mcap", RunError)
+        from tactile_deploy.outputs import OutputPathError, check_output_file
+
+        try:
+            mcap = check_output_file(Path(mcap).expanduser(), "--mcap", overwrite=overwrite,
+                                     suffixes=(".mcap",))
+        except OutputPathError as e:
+            raise RunError(str(e)) from None
         from tactile_deploy.runtime.ros.mcap_recorder import McapRecorder
 
         sinks.append(McapRecorder(mcap, plugin.name, predictor.topology,
@@ -270,16 +275,6 @@ def _need(module: str, extra: str, option: str) -> None:
 
     if importlib.util.find_spec(module) is None:
         fail(f"{option} needs the Python package {module!r}: pip install 'tactile-deploy[{extra}]'")
-
-
-def _check_output_file(path: Path, overwrite: bool, option: str, error) -> None:
-    if path.is_dir():
-        raise error(f"{option} {path} is a folder; give a file name")
-    if path.exists() and not overwrite:
-        raise error(f"{option} {path} already exists; choose another file, or pass --overwrite "
-                    "to replace it")
-    if not path.parent.is_dir():
-        raise error(f"{option} {path}: folder {path.parent} does not exist; create it first")
 
 
 #: onnxruntime execution providers `--providers` accepts.

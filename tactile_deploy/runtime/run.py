@@ -170,6 +170,7 @@ class Runner:
         self._lat = _Ring()
         self._stages: dict[str, _Ring] = {}
         self._consecutive_bad = 0
+        self._stop = threading.Event()
         self._in_ood = False
         self._last_status = 0.0
         self._last_preview = -1e18
@@ -244,6 +245,9 @@ class Runner:
                     if self.opt.max_frames is not None and self.summary.frames >= self.opt.max_frames:
                         self.summary.stopped_by = "max frames"
                         break
+                    if self._stop.is_set():
+                        self.summary.stopped_by = "stopped"
+                        break
                     frame = self.source.read()
                     if frame is None:
                         break
@@ -268,6 +272,10 @@ class Runner:
             raise
         self._finish(stats)
         return self.summary
+
+    def stop(self) -> None:
+        """Ask a run going on in another thread to end after the current frame (as Ctrl-C)."""
+        self._stop.set()
 
     def _finish(self, stats) -> None:
         held: list[int] = []
