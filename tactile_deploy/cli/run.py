@@ -25,7 +25,8 @@ def run_command(
     sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder "
                                "(`tactile-deploy plugins list`)."),
     source: str | None = typer.Option(
-        None, "--source", help="Frame source: demo | camera index (0) or /dev/videoN | video file "
+        None, "--source", help="Frame source: demo | camera index (0), /dev/videoN, "
+        "/dev/v4l/by-id/... or serial:SERIAL (`tactile-deploy cameras`) | video file "
         "| image folder | recording.npz | virtual[:NAME]. Default: the plugin's default source "
         "(the shipped plugins: their demo clip)."),
     out: Path | None = typer.Option(None, "--out", help="Folder for meshes, frames.csv, "
@@ -117,6 +118,12 @@ def run_command(
         src = make_source(config, plugin, from_manifest=from_manifest)
         src.connect()
         src.disconnect()
+        settings = getattr(src, "settings", None) or {}
+        if settings.get("delivered"):
+            got, asked = settings["delivered"], settings["asked"]
+            err_console.print(f"{src.name} delivers {got['width_px']}x{got['height_px']} px at "
+                              f"{got['fps']:g} fps (asked {asked['width_px']}x"
+                              f"{asked['height_px']} at {asked['fps'] or 'its default rate'})")
         out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
         preview_dir = None
         if view and out_dir is None:

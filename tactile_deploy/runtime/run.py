@@ -97,6 +97,7 @@ class RunSummary:
     last_total_force_n: float | None = None
     stopped_by: str = "end of source"
     sinks: dict = field(default_factory=dict)
+    source_settings: dict = field(default_factory=dict)
 
 
 class _Ring:
@@ -290,6 +291,7 @@ class Runner:
         s.unreadable_frames = stats.unreadable
         s.unreadable_files = list(getattr(self.source, "unreadable_files", []))
         s.reconnects = stats.reconnects
+        s.source_settings = dict(getattr(self.source, "settings", None) or {})
         s.wall_s = time.monotonic() - self._t0
         s.fps = s.frames / s.wall_s if s.wall_s > 0 else 0.0
         s.latency_p50_ms = self._lat.pct(50)
@@ -484,6 +486,12 @@ def summary_text(s: RunSummary) -> str:
     if s.latency_p50_ms is not None:
         lines += [f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
                   f"  stages p50 (ms): {stages}"]
+    got = s.source_settings.get("delivered")
+    if got:
+        lines.append(f"  camera delivered {got['width_px']}x{got['height_px']} px "
+                     f"{got.get('fourcc') or ''} at {got['fps']:g} fps, exposure "
+                     f"{got['exposure']:g} (auto {got['auto_exposure']:g}), white balance "
+                     f"{got['white_balance_k']:g} K (auto {got['auto_white_balance']:g})")
     unreadable = ""
     if s.unreadable_frames:
         names = ", ".join(s.unreadable_files[:5]) + (" ..." if len(s.unreadable_files) > 5 else "")
