@@ -36,7 +36,9 @@ def run_command(
                                 "(surface), vtu (volume), npz (vertices, rest_vertices, depth "
                                 "arrays); comma-separated."),
     publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
-                                          "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
+                                          "PUB: a port (5555: this computer only, 127.0.0.1), "
+                                          "tcp://*:5555 (every interface, the network) or "
+                                          "ipc:///tmp/tactile.sock (docs/runtime.md)."),
     view: bool = typer.Option(False, "--view", help="Show the run: `--view` writes preview.png "
                               "(depth map and coloured mesh) about once a second; `--view live` "
                               "serves a live 3-D view to a web browser (rerun; needs the [view] "
@@ -94,10 +96,10 @@ def run_command(
     if providers not in PROVIDERS:
         fail(f"--providers {providers!r}: choose one of {', '.join(PROVIDERS)}")
     if publish:
-        from tactile_deploy.runtime.publish import PublishError, check_address
+        from tactile_deploy.runtime.publish import PublishError, bind_address
 
         try:
-            check_address(publish)
+            bind_address(publish)
         except PublishError as e:
             fail(str(e))
     if out is not None and str(out).startswith("-"):
@@ -153,6 +155,10 @@ def run_command(
             publisher = MeshPublisher(publish, plugin.name, predictor.topology)
             err_console.print(f"publishing meshes on {publisher.endpoint} (topics mesh/{plugin.name}, "
                               f"topology/{plugin.name})")
+            if not publisher.endpoint.startswith(("tcp://127.", "ipc://", "inproc://")):
+                err_console.print("  this address is reachable from the network: anyone who "
+                                  "can reach it receives the meshes (a port alone, --publish "
+                                  "5555, keeps them on this computer)")
     except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
             FrameError, FileNotFoundError) as e:
         fail(str(e))
