@@ -69,3 +69,73 @@ def test_format_npz_writes_one_file_per_frame_with_vertices_rest_and_depth(plugi
     # the press is really in the depth map: the deepest frame is deeper than the no-contact noise
     with np.load(out / "mesh_000001.npz") as z:
         assert z["depth"].max() > 0.05
+
+
+def test_frames_csv_traces_source_time_and_mesh_files_and_a_looped_recording_loses_no_mesh(
+        plugin, tmp_path):
+    """--loop over a 6-frame recording for 20 frames: every requested mesh is written (a
+    recording waits for the disk), and frames.csv gives each frame's time in its recording and
+    its mesh files."""
+    import csv
+
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--loop", "--max-frames",
+                              "20", "--every", "2", "--format", "ply,npz", "--out", str(out),
+                              "--no-forces"])
+    assert res.exit_code == 0, res.output
+    assert "meshes written 10, skipped 0" in res.output
+    with open(out / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 20
+    t = [int(r["t_source_ns"]) for r in rows]
+    assert t[:7] == [0, 33_333_333, 66_666_666, 99_999_999, 133_333_332, 166_666_665, 0]
+    for r in rows:
+        i = int(r["frame_index"])
+        if i % 2 == 0:
+            assert r["mesh_status"] == "written"
+            assert r["mesh_files"] == f"mesh_{i:06d}.ply;mesh_{i:06d}.npz"
+            assert all((out / name).is_file() for name in r["mesh_files"].split(";"))
+        else:
+            assert (r["mesh_status"], r["mesh_files"]) == ("not requested", "")
+
+
+def test_meshes_dropped_for_a_live_camera_are_counted_warned_and_traced(plugin, predictor,
+                                                                         tmp_path, monkeypatch,
+                                                                         caplog):
+    import csv
+    import logging
+    import time
+
+    from test_runtime_support import FakeCapture
+
+    from tactile_deploy.runtime import writers
+    from tactile_deploy.runtime.run import Runner, RunOptions, prepare_out_dir
+    from tactile_deploy.runtime.sources.camera import OpenCVCamera
+    from tactile_deploy.runtime.sources.config import CameraSourceConfig
+
+    real = writers.write_surface
+
+    def slow_disk(*a, **k):
+        time.sleep(0.05)
+        real(*a, **k)
+
+    monkeypatch.setattr(writers, "write_surface", slow_disk)
+    frames, _, _ = load_clip(plugin.demo_clip_path())
+    script = {"frames": [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames], "period_s": 0.002}
+    cam = OpenCVCamera(CameraSourceConfig(device=0), capture_factory=lambda d: FakeCapture(script))
+    out = prepare_out_dir(tmp_path / "out")
+    with caplog.at_level(logging.WARNING):
+        summary = Runner(predictor, cam, RunOptions(out_dir=out, formats=("ply",),
+                                                    max_frames=40)).run()
+    assert summary.meshes_skipped > 0
+    assert summary.meshes_written + summary.meshes_skipped == 40
+    assert set(summary.meshes_skipped_reasons) == {writers.REASON_QUEUE_FULL}
+    assert "not written (1 so far): writer queue full" in caplog.text
+    with open(out / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    dropped = [r for r in rows if r["mesh_status"].startswith("dropped: writer queue full")]
+    written = [r for r in rows if r["mesh_status"] == "written"]
+    assert len(dropped) == summary.meshes_skipped and len(written) == summary.meshes_written
+    assert all((out / r["mesh_files"]).is_file() for r in written)
+    assert all(r["t_source_ns"] == "" for r in rows)         # a live camera has no source time
+    assert not any((out / f"mesh_{int(r['frame_index']):06d}.ply").exists() for r in dropped)

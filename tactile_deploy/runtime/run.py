@@ -86,6 +86,7 @@ class RunSummary:
     reconnects: int = 0
     meshes_written: int = 0
     meshes_skipped: int = 0
+    meshes_skipped_reasons: dict = field(default_factory=dict)
     write_error: str | None = None
     previews_written: int = 0
     published: int = 0
@@ -178,8 +179,7 @@ class Runner:
         self._t0 = time.monotonic()
         # frame times of the last 2 s, at most 256 frames (fps); bounded so memory does not follow the frame rate
         self._recent: deque[float] = deque(maxlen=256)
-        self._csv = None
-        self._csv_tmp = None
+        self._frame_log = None
         self._last = None
         self._peak = None
 
@@ -196,10 +196,9 @@ class Runner:
             from tactile_deploy.runtime.writers import MeshWriter
 
             self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
-            self._csv_tmp = o.out_dir / ".frames.csv.partial"
-            self._csv = open(self._csv_tmp, "w", encoding="utf-8")
-            self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
-                            "total_normal_force_n,source_label\n")
+            from tactile_deploy.runtime.frame_log import FrameLog
+
+            self._frame_log = FrameLog(o.out_dir, self.writer)
         if o.view:
             from tactile_deploy.runtime.preview import MeshRenderer
 
@@ -214,11 +213,11 @@ class Runner:
             self.writer.close()
             self.summary.meshes_written = self.writer.written
             self.summary.meshes_skipped = self.writer.skipped
+            self.summary.meshes_skipped_reasons = dict(self.writer.skipped_reasons)
             self.summary.write_error = self.writer.error
-        if self._csv is not None:
+        if self._frame_log is not None:
             try:
-                self._csv.close()
-                os.replace(self._csv_tmp, self.opt.out_dir / "frames.csv")
+                self._frame_log.close()
             except OSError as e:
                 log.error("could not finish %s: %s", self.opt.out_dir / "frames.csv", e)
         if self.renderer is not None and self._last is not None:
@@ -273,6 +272,17 @@ class Runner:
             raise
         self._finish(stats)
         return self.summary
+
+    def _mesh_dropped(self, index: int) -> str:
+        """The reason the mesh of frame ``index`` was not queued; warned about (first, then
+        every 100th), counted in the summary."""
+        w = self.writer
+        reason = max(w.skipped_reasons, key=w.skipped_reasons.get) if w.skipped_reasons else "?"
+        if w.skipped == 1 or w.skipped % 100 == 0:
+            log.warning("mesh of frame %d not written (%d so far): %s%s", index, w.skipped,
+                        reason, "; write fewer --format or a larger --every"
+                        if reason.startswith("writer queue") else "")
+        return reason
 
     def stop(self) -> None:
         """Ask a run going on in another thread to end after the current frame (as Ctrl-C)."""
@@ -347,8 +357,9 @@ class Runner:
             for sink in self.sinks:
                 sink.consume(result)
             laps.lap("sinks")
+        mesh_status = "no mesh files" if self.writer is None else "not requested"
         if self.writer is not None and frame.index % o.every == 0:
-            self.writer.submit(frame.index, pred.vertices_mm,
+            queued = self.writer.submit(frame.index, pred.vertices_mm,
                                block=not source_is_live(self.source),
                                depth_mm=pred.depth_mm,
                                metadata={"sensor": self.sensor, "frame_index": frame.index,
@@ -358,11 +369,9 @@ class Runner:
                                          "ood_score": float(pred.ood_score),
                                          "total_normal_force_n": None if force is None
                                          else float(force.total_normal_force_n)})
-        if self._csv is not None:
-            f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
-            label = "" if frame.label is None else _csv_field(frame.label)
-            self._csv.write(f"{frame.index},{frame.t_wall_ns},{latency_ms:.4f},"
-                            f"{pred.ood_score:.6g},{int(pred.in_distribution)},{f_txt},{label}\n")
+            mesh_status = None if queued else f"dropped: {self._mesh_dropped(frame.index)}"
+        if self._frame_log is not None:
+            self._frame_log.add(frame, pred, force, latency_ms, mesh_status)
         s.frames += 1
         if force is not None:
             s.last_total_force_n = float(force.total_normal_force_n)
@@ -441,13 +450,6 @@ def source_is_live(source) -> bool:
     return bool(live) if live is not None else not getattr(source, "finite", True)
 
 
-def _csv_field(text: str) -> str:
-    """``text`` as one CSV field (quoted when it holds a comma, quote or line break)."""
-    if any(c in text for c in ',"\n\r'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
-
-
 @contextlib.contextmanager
 def _interrupts_held(held: list | None = None):
     """Hold Ctrl-C and SIGTERM back while the outputs are finished (a second Ctrl-C would leave
@@ -499,7 +501,9 @@ def summary_text(s: RunSummary) -> str:
     lines.append(f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}"
                  f"{unreadable}, outside training range {s.ood_frames}")
     if s.meshes_written or s.write_error or s.meshes_skipped:
-        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}")
+        why = "; ".join(f"{n} {r}" for r, n in s.meshes_skipped_reasons.items())
+        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}"
+                     + (f" ({why})" if why else ""))
     if s.write_error:
         lines.append(f"  write error: {s.write_error}")
     if s.previews_written:

@@ -20,6 +20,7 @@ import json
 import logging
 import queue
 import threading
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,11 @@ def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.
     write_npz(path, **arrays, metadata=np.array(json.dumps(meta)))
 
 
+#: Why a requested mesh was not written.
+REASON_QUEUE_FULL = "writer queue full (the disk is slower than the live sensor)"
+REASON_FAILED = "writing failed (see the write error)"
+
+
 class MeshWriter:
     """Background writer of meshes into ``folder`` (module docstring).
 
@@ -117,6 +123,11 @@ class MeshWriter:
         self.max_mm = float(max_mm)
         self.written = 0
         self.skipped = 0
+        #: skipped meshes by reason
+        self.skipped_reasons: Counter = Counter()
+        #: ``(frame index, None or the reason it was not written)`` of each queued mesh, in
+        #: order, appended by the writer thread (the run drains it for frames.csv)
+        self.results: deque = deque()
         self._count_lock = threading.Lock()  # skipped is counted by the loop and the writer
         self.error: str | None = None
         self._q: queue.Queue = queue.Queue(maxsize=queue_size)
@@ -129,7 +140,7 @@ class MeshWriter:
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
-            self._skip()
+            self._skip(REASON_FAILED)
             return False
         item = (int(index), np.array(vertices_mm, np.float32),
                 None if depth_mm is None else np.array(depth_mm, np.float32), metadata)
@@ -140,18 +151,23 @@ class MeshWriter:
                     return True
                 except queue.Full:
                     continue
-            self._skip()
+            self._skip(REASON_FAILED)
             return False
         try:
             self._q.put_nowait(item)
             return True
         except queue.Full:
-            self._skip()
+            self._skip(REASON_QUEUE_FULL)
             return False
 
-    def _skip(self) -> None:
+    def files_for(self, index: int) -> list[str]:
+        """Names of the files written for frame ``index``."""
+        return [f"mesh_{int(index):06d}.{fmt}" for fmt in self.formats]
+
+    def _skip(self, reason: str) -> None:
         with self._count_lock:
             self.skipped += 1
+            self.skipped_reasons[reason] += 1
 
     def _work(self) -> None:
         while True:
@@ -160,7 +176,8 @@ class MeshWriter:
                 return
             index, v, depth, meta = item
             if self.error is not None:      # queued before writing failed
-                self._skip()
+                self._skip(REASON_FAILED)
+                self.results.append((index, REASON_FAILED))
                 continue
             try:
                 for fmt in self.formats:
@@ -172,8 +189,10 @@ class MeshWriter:
                     else:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1
+                self.results.append((index, None))
             except Exception as e:  # noqa: BLE001 - any failure stops writing, the loop goes on
-                self._skip()
+                self._skip(REASON_FAILED)
+                self.results.append((index, REASON_FAILED))
                 self.error = (f"writing meshes into {self.folder} failed at frame {index}: "
                               f"{type(e).__name__}: {e}; no further meshes are written")
                 log.error(self.error)
