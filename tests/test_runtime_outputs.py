@@ -139,3 +139,35 @@ def test_meshes_dropped_for_a_live_camera_are_counted_warned_and_traced(plugin, 
     assert all((out / r["mesh_files"]).is_file() for r in written)
     assert all(r["t_source_ns"] == "" for r in rows)         # a live camera has no source time
     assert not any((out / f"mesh_{int(r['frame_index']):06d}.ply").exists() for r in dropped)
+
+
+def test_mesh_files_keep_the_vertex_order_and_glb_is_y_up(plugin, predictor, tmp_path):
+    """Every format read back by read_mesh gives the prediction, vertex for vertex; trimesh's
+    default reader (which drops unused vertices) would not; the GLB, read by trimesh as glTF,
+    has the pad's sensing surface facing +y and its backplate at y = -3 mm."""
+    import trimesh
+
+    from tactile_deploy.runtime.meshfiles import read_mesh
+
+    frames = _image_folder(plugin, tmp_path / "frames", n=2)
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source",
+                              str(tmp_path / "frames"), "--format", "ply,obj,glb,vtu,npz",
+                              "--out", str(out), "--no-forces"])
+    assert res.exit_code == 0, res.output
+    topo = predictor.topology
+    expected = predictor.predict_frame(frames[1]).vertices_mm
+    for ext in ("ply", "obj", "glb", "vtu", "npz"):
+        m = read_mesh(out / f"mesh_000001.{ext}")
+        assert m.vertices_mm.shape == (5380, 3), ext
+        assert np.allclose(m.vertices_mm, expected, atol=1e-4), ext
+        if m.faces is not None:
+            assert np.array_equal(m.faces, topo.surface_faces), ext
+    default = trimesh.load(out / "mesh_000001.ply")            # process=True: renumbered
+    assert len(default.vertices) < 5380
+    glb = trimesh.load(out / "mesh_000001.glb", force="mesh", process=False)
+    assert np.allclose(glb.vertices[:, 0], 1e-3 * expected[:, 0], atol=1e-7)
+    assert np.allclose(glb.vertices[:, 1], 1e-3 * expected[:, 2], atol=1e-7)   # sensor z is up
+    assert np.allclose(glb.vertices[:, 2], -1e-3 * expected[:, 1], atol=1e-7)
+    up = glb.face_normals[np.isin(topo.surface_faces, topo.sensing_nodes).all(1)]
+    assert np.median(up[:, 1]) > 0.99, "the sensing surface must face +y (glTF's up)"

@@ -118,21 +118,62 @@ class _Ring:
         return float(np.percentile(v, q)) if len(v) else None
 
 
+#: Files a run writes into --out (glob patterns); ``--overwrite`` removes these first.
+RUN_OUTPUTS = ("mesh_[0-9]*.ply", "mesh_[0-9]*.obj", "mesh_[0-9]*.glb", "mesh_[0-9]*.vtu",
+               "mesh_[0-9]*.npz", ".mesh_*.partial.*", "frames.csv", ".frames.csv.partial",
+               "run.json", ".run.*.partial.json", "preview.png", "preview_peak.png",
+               ".preview*.partial.png")
+#: The folder ``--record`` writes raw frames into.
+RECORD_FOLDER = "frames"
+
+
+def clear_previous_run(path: Path) -> int:
+    """Remove what an earlier run wrote into ``path`` (:data:`RUN_OUTPUTS`, and the raw frames
+    folder of ``--record`` when it holds only a recording); other files stay. Returns the
+    number of files removed."""
+    import shutil
+
+    removed = 0
+    for pattern in RUN_OUTPUTS:
+        for p in path.glob(pattern):
+            if p.is_file():
+                p.unlink()
+                removed += 1
+    rec = path / RECORD_FOLDER
+    if rec.is_dir():
+        files = list(rec.iterdir())
+        ours = [p for p in files if p.name == "timestamps.csv"
+                or (p.name.startswith(("frame_", ".frame_")) and p.suffix == ".png")]
+        if len(ours) == len(files):
+            shutil.rmtree(rec)
+            removed += len(files)
+        else:
+            log.warning("%s holds files --record did not write; left as it is", rec)
+    return removed
+
+
 def prepare_out_dir(path: Path, overwrite: bool = False, ask=None) -> Path:
     """Create or check an output folder: never write into a folder holding files unless the
-    user agrees (``ask(question) -> bool``, or ``overwrite``); check it is writable."""
+    user agrees (``ask(question) -> bool``, or ``overwrite``), and then remove the previous
+    run's files (:func:`clear_previous_run`) so the folder holds this run only; check it is
+    writable."""
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise RunError(f"--out {path} is a file, not a folder; choose a folder name")
     if path.is_dir():
         existing = [p for p in path.iterdir()]
         if existing and not overwrite:
-            question = (f"{path} already holds {len(existing)} file(s); write into it and replace "
-                        "files of the same names?")
+            question = (f"{path} already holds {len(existing)} file(s); remove the previous "
+                        "run's meshes, frames.csv, run.json, previews and recorded frames and "
+                        "write there (other files stay)?")
             if ask is None or not ask(question):
                 raise RunError(f"{path} already holds {len(existing)} file(s) (e.g. "
                                f"{existing[0].name}); choose another --out, or pass --overwrite "
-                               "to write into it")
+                               "to replace the previous run's files there")
+        if existing:
+            n = clear_previous_run(path)
+            if n:
+                log.warning("removed %d file(s) of the previous run from %s", n, path)
     else:
         try:
             path.mkdir(parents=True)

@@ -5,9 +5,15 @@ colours by displacement magnitude on a fixed scale; ``vtu`` -- the tet volume th
 point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``; ``npz`` -- the frame's arrays
 for programs (:func:`write_frame_npz`: ``vertices``, ``rest_vertices``, ``depth``). PLY also carries the
 displacement vector per vertex (``disp_x_mm``, ``disp_y_mm``, ``disp_z_mm``). Units mm, sensor
-frame, except GLB: glTF's unit is the metre, so GLB positions are in metres and its per-vertex
-displacement attributes are ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` (glTF names custom
-attributes with a leading underscore). File names ``mesh_<frame index, 6 digits>.<ext>``; every
+frame, except GLB: glTF's unit is the metre and its up axis is y, so GLB positions are in metres
+in glTF's axes (sensor (x, y, z) -> glTF (x, z, -y): the pad's surface faces +y) and its
+per-vertex displacement attributes ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` are along glTF's
+axes (glTF names custom attributes with a leading underscore).
+
+Vertex order: vertex i of every file is vertex i of the pad mesh (the model's output order,
+``topology.npz``). Surface files (PLY, OBJ, GLB) hold all vertices, the interior ones unused by
+their faces: a reader that drops unused vertices or merges duplicates renumbers the mesh.
+:func:`tactile_deploy.runtime.meshfiles.read_mesh` reads every format back in this order. File names ``mesh_<frame index, 6 digits>.<ext>``; every
 file is written atomically.
 
 If writing fails (disk full, folder removed, permissions changed), the error is logged once,
@@ -55,6 +61,8 @@ def write_surface(path: Path, topology, vertices_mm: np.ndarray, max_mm: float =
     mag = np.linalg.norm(disp, axis=1)
     glb = path.suffix == ".glb"
     scale, unit = (1e-3, "m") if glb else (1.0, "mm")
+    if glb:       # glTF: metres, y up: (x, y, z) of the sensor frame -> (x, z, -y)
+        v, disp = v @ SENSOR_TO_GLTF.T, disp @ SENSOR_TO_GLTF.T
     mesh = trimesh.Trimesh(v * scale, topology.surface_faces, process=False)
     rgb = colourise(mag, max_mm)
     mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(v), 1), 255, np.uint8)], 1)
@@ -106,6 +114,11 @@ def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.
 #: Why a requested mesh was not written.
 REASON_QUEUE_FULL = "writer queue full (the disk is slower than the live sensor)"
 REASON_FAILED = "writing failed (see the write error)"
+
+
+#: Rotation from the sensor frame (z out of the gel) to glTF's axes (y up, right-handed):
+#: a -90 degree turn about x, (x, y, z) -> (x, z, -y).
+SENSOR_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 class MeshWriter:
