@@ -171,3 +171,74 @@ def test_mesh_files_keep_the_vertex_order_and_glb_is_y_up(plugin, predictor, tmp
     assert np.allclose(glb.vertices[:, 2], -1e-3 * expected[:, 1], atol=1e-7)
     up = glb.face_normals[np.isin(topo.surface_faces, topo.sensing_nodes).all(1)]
     assert np.median(up[:, 1]) > 0.99, "the sensing surface must face +y (glTF's up)"
+
+
+def test_progress_lines_give_frames_fps_and_eta_for_finite_sources(plugin, predictor):
+    from tactile_deploy.runtime.run import Runner, RunOptions
+    from tactile_deploy.runtime.sources.base import ArrayPlayback
+
+    frames, t, _ = load_clip(plugin.demo_clip_path())
+    lines = []
+    Runner(predictor, ArrayPlayback(list(frames), t, "clip"), RunOptions(status_every_s=0.0),
+           status=lines.append).run()
+    assert len(lines) == 6
+    assert "frame 1/6 (17 %" in lines[0] and "frame 6/6 (100 %" in lines[-1]
+    assert "ETA 0 s" in lines[-1] and " fps" in lines[-1]
+    looped = []
+    Runner(predictor, ArrayPlayback(list(frames), t, "clip", loop=True),
+           RunOptions(status_every_s=0.0, max_frames=8), status=looped.append).run()
+    assert "frame 8/8 (100 %" in looped[-1]                      # --max-frames bounds a loop
+
+
+def test_record_keeps_raw_frames_losslessly_and_replays_with_their_times(plugin, predictor,
+                                                                          tmp_path):
+    """--record on a live (fake) camera: the PNGs are the delivered frames bit for bit, with
+    their capture times; replaying the folder gives the same meshes and the recorded pacing."""
+    import csv
+
+    from test_runtime_support import FakeCapture
+
+    from tactile_deploy.runtime.record import RawFrameRecorder
+    from tactile_deploy.runtime.run import Runner, RunOptions, prepare_out_dir
+    from tactile_deploy.runtime.sources.camera import OpenCVCamera
+    from tactile_deploy.runtime.sources.config import CameraSourceConfig
+
+    frames, _, _ = load_clip(plugin.demo_clip_path())
+    script = {"frames": [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames], "period_s": 0.01}
+    cam = OpenCVCamera(CameraSourceConfig(device=0), capture_factory=lambda d: FakeCapture(script))
+    out = prepare_out_dir(tmp_path / "out")
+    summary = Runner(predictor, cam, RunOptions(out_dir=out, formats=("npz",), max_frames=8),
+                     sinks=[RawFrameRecorder(out / "frames")]).run()
+    rep = summary.sinks["raw frame recorder"]
+    assert rep["handled"] + sum(rep["dropped"].values()) == 8 and rep["error"] is None
+    with open(out / "frames" / "timestamps.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(out / "frames.csv", newline="") as f:
+        log_rows = {r["frame_index"]: r for r in csv.DictReader(f)}
+    assert len(rows) == rep["handled"] >= 4
+    for r in rows:
+        img = cv2.cvtColor(cv2.imread(str(out / "frames" / r["file"])), cv2.COLOR_BGR2RGB)
+        assert any(np.array_equal(img, f) for f in frames)             # lossless
+        assert r["t_capture_ns"] == log_rows[r["frame_index"]]["t_capture_ns"]
+        with np.load(out / f"mesh_{int(r['frame_index']):06d}.npz") as z:
+            assert np.allclose(z["vertices"], predictor.predict_frame(img).vertices_mm, atol=1e-5)
+    # replay: same frames, in order, with the recorded times (from the first frame)
+    replay = tmp_path / "replay"
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--source",
+                              str(out / "frames"), "--out", str(replay), "--format", "npz",
+                              "--no-forces"])
+    assert res.exit_code == 0, res.output
+    with open(replay / "frames.csv", newline="") as f:
+        again = list(csv.DictReader(f))
+    t0 = int(rows[0]["t_capture_ns"])
+    assert [int(r["t_source_ns"]) for r in again] == [int(r["t_capture_ns"]) - t0 for r in rows]
+    assert [r["source_label"] for r in again] == [r["file"] for r in rows]
+    # --record needs --out; --overwrite removes the recording with the rest of the run
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--record"])
+    assert res.exit_code == 2 and "give --out DIR" in res.output
+    res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--out", str(out),
+                              "--overwrite", "--record", "--no-forces", "--format", "ply"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (out / "frames").glob("*.png")) == [
+        f"frame_{i:06d}.png" for i in range(6)]
+    assert not list(out.glob("*.npz"))

@@ -61,6 +61,9 @@ def run_command(
                                    "folder without asking."),
     colour_max_mm: float = typer.Option(1.0, "--colour-max-mm", min=1e-3, help="Displacement "
                                         "(mm) at the top of the colour scale."),
+    record: bool = typer.Option(False, "--record", help="Keep the raw camera frames losslessly "
+                                "(PNG) with their capture times in <--out>/frames/ (a frame "
+                                "source itself: --source <out>/frames)."),
     mcap: Path | None = typer.Option(None, "--mcap", help="Record standard ROS 2 messages (raw "
                                      "frame, depth, mesh, force, pressure) into this MCAP file "
                                      "(`ros2 bag play`, Foxglove; needs the [ros] extra)."),
@@ -102,6 +105,8 @@ def run_command(
             bind_address(publish)
         except PublishError as e:
             fail(str(e))
+    if record and out is None:
+        fail("--record keeps the raw frames in the --out folder: give --out DIR")
     if out is not None and str(out).startswith("-"):
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")
@@ -147,7 +152,8 @@ def run_command(
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
         sinks = _make_sinks(plugin, predictor, mcap=mcap, overwrite=overwrite,
-                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None)
+                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None,
+                            record_dir=out_dir if record else None)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -251,12 +257,18 @@ def _keep_serving(viewer) -> None:
 
 
 def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
-                colour_max_mm: float, view_port: int | None = None) -> list:
+                colour_max_mm: float, view_port: int | None = None,
+                record_dir: Path | None = None) -> list:
     """The recordings and viewers a run feeds (runtime/sinks.py); refuses before the run starts
     what cannot work (a missing extra, a file that would be written over)."""
     from tactile_deploy.runtime.run import RunError
 
     sinks = []
+    if record_dir is not None:
+        from tactile_deploy.runtime.record import RawFrameRecorder
+        from tactile_deploy.runtime.run import RECORD_FOLDER
+
+        sinks.append(RawFrameRecorder(record_dir / RECORD_FOLDER))
     if mcap is not None:
         _need("mcap", "ros", "--mcap")
         _need("rosbags", "ros", "--mcap")

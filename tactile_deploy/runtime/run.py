@@ -442,9 +442,26 @@ class Runner:
         force = "" if s.last_total_force_n is None else f"  force {s.last_total_force_n:6.2f} N"
         p50 = self._lat.pct(50)
         latency = "   -  " if p50 is None else f"{p50:6.2f}"
-        return (f"{self.sensor}: frame {s.frames}  {fps:7.1f} fps  latency p50 "
-                f"{latency} ms{force}  dropped {self.source.stats.dropped}  "
+        return (f"{self.sensor}: frame {s.frames}{self._progress(fps)}  {fps:7.1f} fps  "
+                f"latency p50 {latency} ms{force}  dropped {self.source.stats.dropped}  "
                 f"ood {s.ood_frames}  bad {s.bad_frames}")
+
+    def expected_frames(self) -> int | None:
+        """Frames the run will process when it ends by itself (the source's count, at most
+        ``max_frames``), None when unknown (a camera without --max-frames, a looped clip)."""
+        n = getattr(self.source, "frame_count", None)
+        m = self.opt.max_frames
+        if n is None:
+            return m
+        return n if m is None else min(n, m)
+
+    def _progress(self, fps: float) -> str:
+        total = self.expected_frames()
+        if not total:
+            return ""
+        done = self.summary.frames + self.summary.bad_frames
+        eta = f", ETA {max(total - done, 0) / fps:.0f} s" if fps > 0 else ""
+        return f"/{total} ({100.0 * done / total:.0f} %{eta})"
 
     def _track_ood(self, index: int, pred) -> None:
         if not pred.in_distribution:
