@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_deploy.runtime.pipeline import FrameError, Laps, frame_to_mesh
+from tactile_deploy.runtime.sinks import FrameResult
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +96,7 @@ class RunSummary:
     stage_p50_ms: dict = field(default_factory=dict)
     last_total_force_n: float | None = None
     stopped_by: str = "end of source"
+    sinks: dict = field(default_factory=dict)
 
 
 class _Ring:
@@ -151,7 +153,7 @@ class Runner:
     ``status(text)`` receives a live status line every ``status_every_s``."""
 
     def __init__(self, predictor, source, options: RunOptions | None = None, forces=None,
-                 publisher=None, status=None, sensor: str | None = None):
+                 publisher=None, status=None, sensor: str | None = None, sinks=()):
         self.predictor = predictor
         self.source = source
         self.opt = options or RunOptions()
@@ -159,6 +161,7 @@ class Runner:
             raise RunError(f"--every must be >= 1, got {self.opt.every}")
         self.forces = forces
         self.publisher = publisher
+        self.sinks = list(sinks)          # FrameSink: recordings, live view (runtime/sinks.py)
         self.status = status
         self.sensor = sensor or getattr(getattr(predictor, "plugin", None), "name", "sensor")
         self.summary = RunSummary(self.sensor, getattr(source, "name", str(source)))
@@ -167,6 +170,7 @@ class Runner:
         self._lat = _Ring()
         self._stages: dict[str, _Ring] = {}
         self._consecutive_bad = 0
+        self._stop = threading.Event()
         self._in_ood = False
         self._last_status = 0.0
         self._last_preview = -1e18
@@ -177,6 +181,11 @@ class Runner:
         self._csv_tmp = None
         self._last = None
         self._peak = None
+
+    @property
+    def _wants_pressure(self) -> bool:
+        """Per-node pressures cost a dense product per frame: only when someone sends them."""
+        return self.publisher is not None or any(s.wants_pressure for s in self.sinks)
 
     # ------------------------------------------------------------------ setup / teardown
     def _open_outputs(self) -> None:
@@ -196,6 +205,8 @@ class Runner:
             if o.preview_dir is None:
                 o.preview_dir = o.out_dir
             self.renderer = MeshRenderer(topo, max_mm=o.colour_max_mm)
+        for sink in self.sinks:
+            sink.start(live=source_is_live(self.source))
 
     def _close_outputs(self) -> None:
         if self.writer is not None:
@@ -216,6 +227,9 @@ class Runner:
         if self.publisher is not None:
             self.summary.published = self.publisher.seq
             self.publisher.close()
+        for sink in self.sinks:
+            sink.close()
+            self.summary.sinks[sink.name] = sink.report()
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> RunSummary:
@@ -230,6 +244,9 @@ class Runner:
                 while True:
                     if self.opt.max_frames is not None and self.summary.frames >= self.opt.max_frames:
                         self.summary.stopped_by = "max frames"
+                        break
+                    if self._stop.is_set():
+                        self.summary.stopped_by = "stopped"
                         break
                     frame = self.source.read()
                     if frame is None:
@@ -255,6 +272,10 @@ class Runner:
             raise
         self._finish(stats)
         return self.summary
+
+    def stop(self) -> None:
+        """Ask a run going on in another thread to end after the current frame (as Ctrl-C)."""
+        self._stop.set()
 
     def _finish(self, stats) -> None:
         held: list[int] = []
@@ -304,9 +325,8 @@ class Runner:
         self._consecutive_bad = 0
         force = None
         if self.forces is not None:
-            # per-node pressures cost a dense product; only the publisher sends them
             force = self.forces.estimate(pred.vertices_mm, clip_tension=o.clip_tension,
-                                         pressure=self.publisher is not None)
+                                         pressure=self._wants_pressure)
             laps.lap("forces")
         captured_ns = frame.t_mono_ns if due_ns is None else max(frame.t_mono_ns, due_ns)
         latency_ms = (time.monotonic_ns() - captured_ns) / 1e6
@@ -320,9 +340,14 @@ class Runner:
                 pressure_kpa=None if force is None or not force.pressure_kpa.size
                 else force.pressure_kpa)
             laps.lap("publish")
+        if self.sinks:
+            result = FrameResult(frame, pred, force, latency_ms)
+            for sink in self.sinks:
+                sink.consume(result)
+            laps.lap("sinks")
         if self.writer is not None and frame.index % o.every == 0:
             self.writer.submit(frame.index, pred.vertices_mm,
-                               block=getattr(self.source, "finite", False),
+                               block=not source_is_live(self.source),
                                depth_mm=pred.depth_mm,
                                metadata={"sensor": self.sensor, "frame_index": frame.index,
                                          "t_capture_ns": frame.t_wall_ns,
@@ -407,6 +432,13 @@ class Runner:
             self.renderer = None
 
 
+def source_is_live(source) -> bool:
+    """A live source (a camera) keeps capturing while the loop waits, so the loop must not wait
+    for a disk; a recording (even looped) loses nothing by waiting."""
+    live = getattr(source, "live", None)
+    return bool(live) if live is not None else not getattr(source, "finite", True)
+
+
 def _csv_field(text: str) -> str:
     """``text`` as one CSV field (quoted when it holds a comma, quote or line break)."""
     if any(c in text for c in ',"\n\r'):
@@ -466,6 +498,14 @@ def summary_text(s: RunSummary) -> str:
         lines.append(f"  previews written {s.previews_written}")
     if s.published:
         lines.append(f"  meshes published {s.published}")
+    for name, rep in s.sinks.items():
+        dropped = sum(rep.get("dropped", {}).values())
+        why = "; ".join(f"{n} {reason}" for reason, n in rep.get("dropped", {}).items())
+        lines.append(f"  {name}: {rep.get('handled', 0)} frames" +
+                     (f" ({rep['file']})" if rep.get("file") else "") +
+                     (f", dropped {dropped}: {why}" if dropped else ""))
+        if rep.get("error"):
+            lines.append(f"  {name} error: {rep['error']}")
     return "\n".join(lines)
 
 

@@ -74,8 +74,11 @@ class FrameSource:
     the source in messages ("camera /dev/video2", "clip demo.mp4")."""
 
     name: str = "frame source"
-    #: True for a source that ends (a file); False for a live device.
+    #: True for a source that ends (a file); False for a live device or a looped recording.
     finite: bool = True
+    #: True for a device that captures whether or not it is read (a camera): the loop must not
+    #: wait for slow outputs; False for recordings, which lose nothing by waiting.
+    live: bool = False
 
     def __init__(self) -> None:
         self.stats = SourceStats()

@@ -49,6 +49,7 @@ class OpenCVCamera(FrameSource):
     """
 
     finite = False
+    live = True
 
     def __init__(self, config: CameraSourceConfig, capture_factory=None, sleep=time.sleep):
         super().__init__()
