@@ -25,7 +25,8 @@ def run_command(
     sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder "
                                "(`tactile-deploy plugins list`)."),
     source: str | None = typer.Option(
-        None, "--source", help="Frame source: demo | camera index (0) or /dev/videoN | video file "
+        None, "--source", help="Frame source: demo | camera index (0), /dev/videoN, "
+        "/dev/v4l/by-id/... or serial:SERIAL (`tactile-deploy cameras`) | video file "
         "| image folder | recording.npz | virtual[:NAME]. Default: the plugin's default source "
         "(the shipped plugins: their demo clip)."),
     out: Path | None = typer.Option(None, "--out", help="Folder for meshes, frames.csv, "
@@ -35,7 +36,9 @@ def run_command(
                                 "(surface), vtu (volume), npz (vertices, rest_vertices, depth "
                                 "arrays); comma-separated."),
     publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
-                                          "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
+                                          "PUB: a port (5555: this computer only, 127.0.0.1), "
+                                          "tcp://*:5555 (every interface, the network) or "
+                                          "ipc:///tmp/tactile.sock (docs/runtime.md)."),
     view: bool = typer.Option(False, "--view", help="Show the run: `--view` writes preview.png "
                               "(depth map and coloured mesh) about once a second; `--view live` "
                               "serves a live 3-D view to a web browser (rerun; needs the [view] "
@@ -58,6 +61,9 @@ def run_command(
                                    "folder without asking."),
     colour_max_mm: float = typer.Option(1.0, "--colour-max-mm", min=1e-3, help="Displacement "
                                         "(mm) at the top of the colour scale."),
+    record: bool = typer.Option(False, "--record", help="Keep the raw camera frames losslessly "
+                                "(PNG) with their capture times in <--out>/frames/ (a frame "
+                                "source itself: --source <out>/frames)."),
     mcap: Path | None = typer.Option(None, "--mcap", help="Record standard ROS 2 messages (raw "
                                      "frame, depth, mesh, force, pressure) into this MCAP file "
                                      "(`ros2 bag play`, Foxglove; needs the [ros] extra)."),
@@ -93,12 +99,14 @@ def run_command(
     if providers not in PROVIDERS:
         fail(f"--providers {providers!r}: choose one of {', '.join(PROVIDERS)}")
     if publish:
-        from tactile_deploy.runtime.publish import PublishError, check_address
+        from tactile_deploy.runtime.publish import PublishError, bind_address
 
         try:
-            check_address(publish)
+            bind_address(publish)
         except PublishError as e:
             fail(str(e))
+    if record and out is None:
+        fail("--record keeps the raw frames in the --out folder: give --out DIR")
     if out is not None and str(out).startswith("-"):
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")
@@ -117,6 +125,12 @@ def run_command(
         src = make_source(config, plugin, from_manifest=from_manifest)
         src.connect()
         src.disconnect()
+        settings = getattr(src, "settings", None) or {}
+        if settings.get("delivered"):
+            got, asked = settings["delivered"], settings["asked"]
+            err_console.print(f"{src.name} delivers {got['width_px']}x{got['height_px']} px at "
+                              f"{got['fps']:g} fps (asked {asked['width_px']}x"
+                              f"{asked['height_px']} at {asked['fps'] or 'its default rate'})")
         out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
         preview_dir = None
         if view and out_dir is None:
@@ -138,7 +152,8 @@ def run_command(
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
         sinks = _make_sinks(plugin, predictor, mcap=mcap, overwrite=overwrite,
-                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None)
+                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None,
+                            record_dir=out_dir if record else None)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -146,6 +161,10 @@ def run_command(
             publisher = MeshPublisher(publish, plugin.name, predictor.topology)
             err_console.print(f"publishing meshes on {publisher.endpoint} (topics mesh/{plugin.name}, "
                               f"topology/{plugin.name})")
+            if not publisher.endpoint.startswith(("tcp://127.", "ipc://", "inproc://")):
+                err_console.print("  this address is reachable from the network: anyone who "
+                                  "can reach it receives the meshes (a port alone, --publish "
+                                  "5555, keeps them on this computer)")
     except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
             FrameError, FileNotFoundError) as e:
         fail(str(e))
@@ -238,12 +257,18 @@ def _keep_serving(viewer) -> None:
 
 
 def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
-                colour_max_mm: float, view_port: int | None = None) -> list:
+                colour_max_mm: float, view_port: int | None = None,
+                record_dir: Path | None = None) -> list:
     """The recordings and viewers a run feeds (runtime/sinks.py); refuses before the run starts
     what cannot work (a missing extra, a file that would be written over)."""
     from tactile_deploy.runtime.run import RunError
 
     sinks = []
+    if record_dir is not None:
+        from tactile_deploy.runtime.record import RawFrameRecorder
+        from tactile_deploy.runtime.run import RECORD_FOLDER
+
+        sinks.append(RawFrameRecorder(record_dir / RECORD_FOLDER))
     if mcap is not None:
         _need("mcap", "ros", "--mcap")
         _need("rosbags", "ros", "--mcap")

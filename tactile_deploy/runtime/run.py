@@ -86,6 +86,7 @@ class RunSummary:
     reconnects: int = 0
     meshes_written: int = 0
     meshes_skipped: int = 0
+    meshes_skipped_reasons: dict = field(default_factory=dict)
     write_error: str | None = None
     previews_written: int = 0
     published: int = 0
@@ -97,6 +98,7 @@ class RunSummary:
     last_total_force_n: float | None = None
     stopped_by: str = "end of source"
     sinks: dict = field(default_factory=dict)
+    source_settings: dict = field(default_factory=dict)
 
 
 class _Ring:
@@ -116,21 +118,62 @@ class _Ring:
         return float(np.percentile(v, q)) if len(v) else None
 
 
+#: Files a run writes into --out (glob patterns); ``--overwrite`` removes these first.
+RUN_OUTPUTS = ("mesh_[0-9]*.ply", "mesh_[0-9]*.obj", "mesh_[0-9]*.glb", "mesh_[0-9]*.vtu",
+               "mesh_[0-9]*.npz", ".mesh_*.partial.*", "frames.csv", ".frames.csv.partial",
+               "run.json", ".run.*.partial.json", "preview.png", "preview_peak.png",
+               ".preview*.partial.png")
+#: The folder ``--record`` writes raw frames into.
+RECORD_FOLDER = "frames"
+
+
+def clear_previous_run(path: Path) -> int:
+    """Remove what an earlier run wrote into ``path`` (:data:`RUN_OUTPUTS`, and the raw frames
+    folder of ``--record`` when it holds only a recording); other files stay. Returns the
+    number of files removed."""
+    import shutil
+
+    removed = 0
+    for pattern in RUN_OUTPUTS:
+        for p in path.glob(pattern):
+            if p.is_file():
+                p.unlink()
+                removed += 1
+    rec = path / RECORD_FOLDER
+    if rec.is_dir():
+        files = list(rec.iterdir())
+        ours = [p for p in files if p.name == "timestamps.csv"
+                or (p.name.startswith(("frame_", ".frame_")) and p.suffix == ".png")]
+        if len(ours) == len(files):
+            shutil.rmtree(rec)
+            removed += len(files)
+        else:
+            log.warning("%s holds files --record did not write; left as it is", rec)
+    return removed
+
+
 def prepare_out_dir(path: Path, overwrite: bool = False, ask=None) -> Path:
     """Create or check an output folder: never write into a folder holding files unless the
-    user agrees (``ask(question) -> bool``, or ``overwrite``); check it is writable."""
+    user agrees (``ask(question) -> bool``, or ``overwrite``), and then remove the previous
+    run's files (:func:`clear_previous_run`) so the folder holds this run only; check it is
+    writable."""
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise RunError(f"--out {path} is a file, not a folder; choose a folder name")
     if path.is_dir():
         existing = [p for p in path.iterdir()]
         if existing and not overwrite:
-            question = (f"{path} already holds {len(existing)} file(s); write into it and replace "
-                        "files of the same names?")
+            question = (f"{path} already holds {len(existing)} file(s); remove the previous "
+                        "run's meshes, frames.csv, run.json, previews and recorded frames and "
+                        "write there (other files stay)?")
             if ask is None or not ask(question):
                 raise RunError(f"{path} already holds {len(existing)} file(s) (e.g. "
                                f"{existing[0].name}); choose another --out, or pass --overwrite "
-                               "to write into it")
+                               "to replace the previous run's files there")
+        if existing:
+            n = clear_previous_run(path)
+            if n:
+                log.warning("removed %d file(s) of the previous run from %s", n, path)
     else:
         try:
             path.mkdir(parents=True)
@@ -177,8 +220,7 @@ class Runner:
         self._t0 = time.monotonic()
         # frame times of the last 2 s, at most 256 frames (fps); bounded so memory does not follow the frame rate
         self._recent: deque[float] = deque(maxlen=256)
-        self._csv = None
-        self._csv_tmp = None
+        self._frame_log = None
         self._last = None
         self._peak = None
 
@@ -195,10 +237,9 @@ class Runner:
             from tactile_deploy.runtime.writers import MeshWriter
 
             self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
-            self._csv_tmp = o.out_dir / ".frames.csv.partial"
-            self._csv = open(self._csv_tmp, "w", encoding="utf-8")
-            self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
-                            "total_normal_force_n,source_label\n")
+            from tactile_deploy.runtime.frame_log import FrameLog
+
+            self._frame_log = FrameLog(o.out_dir, self.writer)
         if o.view:
             from tactile_deploy.runtime.preview import MeshRenderer
 
@@ -213,11 +254,11 @@ class Runner:
             self.writer.close()
             self.summary.meshes_written = self.writer.written
             self.summary.meshes_skipped = self.writer.skipped
+            self.summary.meshes_skipped_reasons = dict(self.writer.skipped_reasons)
             self.summary.write_error = self.writer.error
-        if self._csv is not None:
+        if self._frame_log is not None:
             try:
-                self._csv.close()
-                os.replace(self._csv_tmp, self.opt.out_dir / "frames.csv")
+                self._frame_log.close()
             except OSError as e:
                 log.error("could not finish %s: %s", self.opt.out_dir / "frames.csv", e)
         if self.renderer is not None and self._last is not None:
@@ -273,6 +314,17 @@ class Runner:
         self._finish(stats)
         return self.summary
 
+    def _mesh_dropped(self, index: int) -> str:
+        """The reason the mesh of frame ``index`` was not queued; warned about (first, then
+        every 100th), counted in the summary."""
+        w = self.writer
+        reason = max(w.skipped_reasons, key=w.skipped_reasons.get) if w.skipped_reasons else "?"
+        if w.skipped == 1 or w.skipped % 100 == 0:
+            log.warning("mesh of frame %d not written (%d so far): %s%s", index, w.skipped,
+                        reason, "; write fewer --format or a larger --every"
+                        if reason.startswith("writer queue") else "")
+        return reason
+
     def stop(self) -> None:
         """Ask a run going on in another thread to end after the current frame (as Ctrl-C)."""
         self._stop.set()
@@ -290,6 +342,7 @@ class Runner:
         s.unreadable_frames = stats.unreadable
         s.unreadable_files = list(getattr(self.source, "unreadable_files", []))
         s.reconnects = stats.reconnects
+        s.source_settings = dict(getattr(self.source, "settings", None) or {})
         s.wall_s = time.monotonic() - self._t0
         s.fps = s.frames / s.wall_s if s.wall_s > 0 else 0.0
         s.latency_p50_ms = self._lat.pct(50)
@@ -345,8 +398,9 @@ class Runner:
             for sink in self.sinks:
                 sink.consume(result)
             laps.lap("sinks")
+        mesh_status = "no mesh files" if self.writer is None else "not requested"
         if self.writer is not None and frame.index % o.every == 0:
-            self.writer.submit(frame.index, pred.vertices_mm,
+            queued = self.writer.submit(frame.index, pred.vertices_mm,
                                block=not source_is_live(self.source),
                                depth_mm=pred.depth_mm,
                                metadata={"sensor": self.sensor, "frame_index": frame.index,
@@ -356,11 +410,9 @@ class Runner:
                                          "ood_score": float(pred.ood_score),
                                          "total_normal_force_n": None if force is None
                                          else float(force.total_normal_force_n)})
-        if self._csv is not None:
-            f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
-            label = "" if frame.label is None else _csv_field(frame.label)
-            self._csv.write(f"{frame.index},{frame.t_wall_ns},{latency_ms:.4f},"
-                            f"{pred.ood_score:.6g},{int(pred.in_distribution)},{f_txt},{label}\n")
+            mesh_status = None if queued else f"dropped: {self._mesh_dropped(frame.index)}"
+        if self._frame_log is not None:
+            self._frame_log.add(frame, pred, force, latency_ms, mesh_status)
         s.frames += 1
         if force is not None:
             s.last_total_force_n = float(force.total_normal_force_n)
@@ -390,9 +442,26 @@ class Runner:
         force = "" if s.last_total_force_n is None else f"  force {s.last_total_force_n:6.2f} N"
         p50 = self._lat.pct(50)
         latency = "   -  " if p50 is None else f"{p50:6.2f}"
-        return (f"{self.sensor}: frame {s.frames}  {fps:7.1f} fps  latency p50 "
-                f"{latency} ms{force}  dropped {self.source.stats.dropped}  "
+        return (f"{self.sensor}: frame {s.frames}{self._progress(fps)}  {fps:7.1f} fps  "
+                f"latency p50 {latency} ms{force}  dropped {self.source.stats.dropped}  "
                 f"ood {s.ood_frames}  bad {s.bad_frames}")
+
+    def expected_frames(self) -> int | None:
+        """Frames the run will process when it ends by itself (the source's count, at most
+        ``max_frames``), None when unknown (a camera without --max-frames, a looped clip)."""
+        n = getattr(self.source, "frame_count", None)
+        m = self.opt.max_frames
+        if n is None:
+            return m
+        return n if m is None else min(n, m)
+
+    def _progress(self, fps: float) -> str:
+        total = self.expected_frames()
+        if not total:
+            return ""
+        done = self.summary.frames + self.summary.bad_frames
+        eta = f", ETA {max(total - done, 0) / fps:.0f} s" if fps > 0 else ""
+        return f"/{total} ({100.0 * done / total:.0f} %{eta})"
 
     def _track_ood(self, index: int, pred) -> None:
         if not pred.in_distribution:
@@ -439,13 +508,6 @@ def source_is_live(source) -> bool:
     return bool(live) if live is not None else not getattr(source, "finite", True)
 
 
-def _csv_field(text: str) -> str:
-    """``text`` as one CSV field (quoted when it holds a comma, quote or line break)."""
-    if any(c in text for c in ',"\n\r'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
-
-
 @contextlib.contextmanager
 def _interrupts_held(held: list | None = None):
     """Hold Ctrl-C and SIGTERM back while the outputs are finished (a second Ctrl-C would leave
@@ -484,6 +546,12 @@ def summary_text(s: RunSummary) -> str:
     if s.latency_p50_ms is not None:
         lines += [f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
                   f"  stages p50 (ms): {stages}"]
+    got = s.source_settings.get("delivered")
+    if got:
+        lines.append(f"  camera delivered {got['width_px']}x{got['height_px']} px "
+                     f"{got.get('fourcc') or ''} at {got['fps']:g} fps, exposure "
+                     f"{got['exposure']:g} (auto {got['auto_exposure']:g}), white balance "
+                     f"{got['white_balance_k']:g} K (auto {got['auto_white_balance']:g})")
     unreadable = ""
     if s.unreadable_frames:
         names = ", ".join(s.unreadable_files[:5]) + (" ..." if len(s.unreadable_files) > 5 else "")
@@ -491,7 +559,9 @@ def summary_text(s: RunSummary) -> str:
     lines.append(f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}"
                  f"{unreadable}, outside training range {s.ood_frames}")
     if s.meshes_written or s.write_error or s.meshes_skipped:
-        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}")
+        why = "; ".join(f"{n} {r}" for r, n in s.meshes_skipped_reasons.items())
+        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}"
+                     + (f" ({why})" if why else ""))
     if s.write_error:
         lines.append(f"  write error: {s.write_error}")
     if s.previews_written:

@@ -110,6 +110,12 @@ class FrameSource:
     def is_connected(self) -> bool:
         return self._connected
 
+    @property
+    def frame_count(self) -> int | None:
+        """Frames this source delivers in all (known for a finite recording once connected;
+        None for a camera or a looped recording): progress and ETA."""
+        return None
+
     def __enter__(self) -> FrameSource:
         return self.connect()
 
@@ -157,6 +163,10 @@ class ArrayPlayback(FrameSource):
 
     def __len__(self) -> int:
         return len(self._frames)
+
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop else len(self._frames)
 
     def _read(self) -> Frame | None:
         n = len(self._frames)
