@@ -49,7 +49,7 @@ def recording(plugin, predictor, tmp_path_factory):
     out = prepare_out_dir(tmp / "out")
     summary = Runner(predictor, ArrayPlayback(list(frames), t, "clip"),
                      RunOptions(out_dir=out, formats=("npz",)), forces=forces,
-                     sinks=[McapRecorder(bag, "testsensor", topo)]).run()
+                     sinks=[McapRecorder(bag, "testsensor", topo, marker_hz=float("inf"))]).run()
     report = summary.sinks["MCAP recorder"]
     assert report["handled"] == 4 and not report["dropped"] and report["error"] is None
     assert not list(tmp.glob(".*partial*"))
@@ -168,7 +168,9 @@ def test_cli_run_mcap_records_and_refuses_to_write_over_a_file(plugin, tmp_path)
     assert "MCAP recorder: 2 frames" in " ".join(res.output.split())
     with open(bag, "rb") as f:
         stats = make_reader(f).get_summary().statistics
-    assert stats.message_count == 2 * 4          # no forces: image, depth, points, surface
+    # no forces: image, depth, points in both frames; the surface marker at most 10 per second
+    # of the clip's time by default (5: frames at 0 and 33 ms get one)
+    assert stats.message_count == 2 * 3 + 1
     bag = tmp_path / "a.mcap"
     bag.write_bytes(b"user's bag")
     res = runner.invoke(app, ["run", "--sensor", str(plugin.folder), "--mcap", str(bag),

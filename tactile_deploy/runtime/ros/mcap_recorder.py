@@ -14,9 +14,10 @@ Besides the messages the file carries:
 
 It is written to a temporary file beside ``FILE`` and renamed when the run ends, so ``FILE`` is
 never half-written. The visualization_msgs/Marker of the surface (three points per face, ~15,000
-points) takes ~50 ms to serialise on one CPU core: with a live camera it is recorded at most
-``marker_hz`` times a second (the point cloud of all vertices is in every frame); from a
-recording every frame has it.
+points, each a message object for the serialiser) takes 50-200 ms to build and serialise on one
+CPU core, so it is recorded at most ``marker_hz`` times per second of the sensor's time (the
+frame's time in its recording, or its capture time for a camera; default 5; ``inf``: every
+frame; 0: never); the point cloud of all vertices is in every frame.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ class McapRecorder(BackgroundSink):
 
     def __init__(self, path: str | os.PathLike, sensor: str, topology,
                  names: RosNames | None = None, colour_max_mm: float = 1.0,
-                 marker_hz: float = 10.0, image: bool = True, queue_size: int = 8):
+                 marker_hz: float = 5.0, image: bool = True, queue_size: int = 8):
         super().__init__(queue_size)
         self.path = Path(path)
         self.sensor = sensor
@@ -107,10 +108,12 @@ class McapRecorder(BackgroundSink):
 
     def handle(self, result) -> None:
         t = int(result.frame.t_wall_ns)
-        marker = (not self._live or self.marker_period_ns is None or self._last_marker_ns is None
-                  or t - self._last_marker_ns >= self.marker_period_ns)
+        clock = t if result.frame.t_source_ns is None else int(result.frame.t_source_ns)
+        last = self._last_marker_ns
+        marker = self.marker_period_ns is not None and (
+            last is None or clock < last or clock - last >= self.marker_period_ns)  # < : a loop
         if marker:
-            self._last_marker_ns = t
+            self._last_marker_ns = clock
         for topic, msg in frame_messages(result, self.topology, self.names,
                                          colour_max_mm=self.colour_max_mm, marker=marker,
                                          image=self.image):

@@ -10,7 +10,7 @@ and tactile-deploy is installed::
 Parameters (``--ros-args -p NAME:=VALUE``): ``sensor`` (plugin name or folder, default
 gelslim2), ``source`` (as ``run --source``; empty: the plugin's default), ``namespace`` (default
 ``/tactile/<sensor>``), ``sensor_frame``, ``camera_frame`` (frame ids), ``forces`` (default
-true), ``marker_hz`` (surface markers per second at most, default 10), ``image`` (publish the
+true), ``marker_hz`` (surface markers per second at most, default 5; 0: none), ``image`` (publish the
 raw frame, default true), ``threads`` (onnxruntime threads), ``loop`` (replay a recording).
 
 The node's work is in :class:`RosPublisherSink` and :func:`node_settings`, which need no rclpy:
@@ -42,7 +42,7 @@ class NodeSettings:
     sensor_frame: str = ""
     camera_frame: str = ""
     forces: bool = True
-    marker_hz: float = 10.0
+    marker_hz: float = 5.0
     image: bool = True
     threads: int = 1
     loop: bool = False
@@ -81,7 +81,7 @@ class RosPublisherSink(BackgroundSink):
     wants_pressure = True
 
     def __init__(self, make_publisher, get_message, topology, names: RosNames,
-                 colour_max_mm: float = 1.0, marker_hz: float = 10.0, image: bool = True,
+                 colour_max_mm: float = 1.0, marker_hz: float = 5.0, image: bool = True,
                  queue_size: int = 2):
         super().__init__(queue_size)
         self.topology = topology
