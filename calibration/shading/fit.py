@@ -84,6 +84,7 @@ class ShadingFitConfig:
     reference_gain: bool = True         # bin colour differences x reference_gain(reference)
     offset_inlier_grey: float = 12.0    # see frame_offset
     poisson_weights_x: tuple[float, ...] = (0.02, 0.035, 0.06, 0.1, 0.18, 0.35, 1.0)
+    poisson_margin_mm: float = 2.5      # the integration's zero-depth boundary outside the image
 
 
 @dataclass
@@ -239,7 +240,8 @@ def _build_model(keys, targets, cols, rows, far, shape, presses_n, mm_per_px, ba
         node_spacing_px=spacing_px, n_slots=table.shape[2],
         reference_gain=cfg.reference_gain,
         offset_inlier_grey=cfg.offset_inlier_grey, poisson_weight_x=weights[0],
-        poisson_weight_y=weights[1], n_presses=presses_n, fit_metrics=metrics or {})
+        poisson_weight_y=weights[1], poisson_margin_px=int(round(cfg.poisson_margin_mm / mm_per_px)),
+        n_presses=presses_n, fit_metrics=metrics or {})
     return ShadingModel(header, slot_of_bin, table)
 
 
@@ -284,7 +286,8 @@ def choose_poisson_weights(model: ShadingModel, presses: PressSet, circles, ball
     cand = sorted(float(w) for w in candidates)
     scores = {}
     for wx in cand:
-        solver = poisson_solver(presses.shape, "dirichlet", (wx, 1.0))
+        solver = poisson_solver(presses.shape, "dirichlet", (wx, 1.0),
+                                model.header.poisson_margin_px)
         errs = [sphere_residual_um(solver.integrate(gc * s, gr * s), circles[i], ball_radius_px,
                                    model.header.mm_per_px)
                 for i, (gc, gr) in enumerate(grads)]

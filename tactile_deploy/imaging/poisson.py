@@ -15,6 +15,12 @@ The normal equations are the (weighted) Poisson equation ``w_col * d2z/dcol2 + w
   problem); DCT-II. The result is defined up to a constant; it is shifted so that the mean of the
   outermost ring of pixels is 0 (the border is taken as the zero level).
 
+A ``margin`` of m pixels moves the boundary m pixels out: the grid is extended by m pixels on
+every side with zero derivative targets, the problem solved there and the image cut back out. The
+image border is then no longer forced to the zero level, only drawn towards it (a surface still
+sunk at the edge of the view, around a contact near it, keeps its depth there); far from the
+border the result is the same.
+
 Units: the derivatives are in units of z per pixel (for a depth map in mm: mm per pixel), along
 image columns (``d_col = dz/dcol``) and image rows (``d_row = dz/drow``); the result has the units
 of z. Unequal weights ``w_col != w_row`` give one axis more say where the derivatives along the
@@ -74,19 +80,25 @@ class PoissonSolver:
     boundary : "dirichlet" (z = 0 half a pixel outside the image) or "neumann".
     weights : (w_col, w_row) > 0, weights of the column and row derivative terms.
     workers : threads for the transforms (1 is fastest for small grids).
+    margin : pixels by which the boundary lies outside the image (module docstring), >= 0.
     """
 
     def __init__(self, shape: tuple[int, int], boundary: Boundary = "dirichlet",
-                 weights: tuple[float, float] = (1.0, 1.0), workers: int = 1):
+                 weights: tuple[float, float] = (1.0, 1.0), workers: int = 1, margin: int = 0):
         h, w = (int(s) for s in shape)
         if h < 2 or w < 2:
             raise ValueError(f"shape must be at least (2, 2) pixels, got {tuple(shape)}")
+        if int(margin) != margin or margin < 0:
+            raise ValueError(f"margin must be a whole number of pixels >= 0, got {margin!r}")
+        self.image_shape = (h, w)
+        self.margin = m = int(margin)
+        h, w = h + 2 * m, w + 2 * m
         if boundary not in ("dirichlet", "neumann"):
             raise ValueError(f"boundary must be 'dirichlet' or 'neumann', got {boundary!r}")
         w_col, w_row = (float(v) for v in weights)
         if not (w_col > 0 and w_row > 0 and np.isfinite(w_col) and np.isfinite(w_row)):
             raise ValueError(f"weights must be finite and > 0, got {tuple(weights)}")
-        self.shape = (h, w)
+        self.shape = (h, w)           # the solved grid: the image and its margin
         self.boundary = boundary
         self.weights = (w_col, w_row)
         self.workers = int(workers)
@@ -110,7 +122,8 @@ class PoissonSolver:
         self._ring = ring
 
     def solve_divergence(self, div) -> np.ndarray:
-        """z (H, W) float32 with ``w_col * Lcol z + w_row * Lrow z = div`` (discrete Laplacians)."""
+        """z (H, W) float32 with ``w_col * Lcol z + w_row * Lrow z = div`` (discrete Laplacians)
+        on the solved grid (the image and its margin: ``self.shape``)."""
         f = _as_grid("div", div, self.shape)
         if self.boundary == "dirichlet":
             spec = scipy.fft.dstn(f, type=2, workers=self.workers)
@@ -123,16 +136,23 @@ class PoissonSolver:
         return z
 
     def integrate(self, d_col, d_row) -> np.ndarray:
-        """Surface z (H, W) float32 whose derivatives best match ``d_col``, ``d_row`` (z per px)."""
-        return self.solve_divergence(edge_divergence(d_col, d_row, self.weights))
+        """Surface z (H, W) float32 whose derivatives best match ``d_col``, ``d_row`` (z per px),
+        (H, W) each: the image's shape."""
+        m = self.margin
+        if m == 0:
+            return self.solve_divergence(edge_divergence(d_col, d_row, self.weights))
+        gc = _as_grid("d_col", d_col, self.image_shape)
+        gr = _as_grid("d_row", d_row, self.image_shape)
+        z = self.solve_divergence(edge_divergence(np.pad(gc, m), np.pad(gr, m), self.weights))
+        return z[m:-m, m:-m]
 
 
 @lru_cache(maxsize=16)
 def poisson_solver(shape: tuple[int, int], boundary: Boundary = "dirichlet",
-                   weights: tuple[float, float] = (1.0, 1.0)) -> PoissonSolver:
-    """A cached :class:`PoissonSolver` for this grid size, boundary and weights."""
+                   weights: tuple[float, float] = (1.0, 1.0), margin: int = 0) -> PoissonSolver:
+    """A cached :class:`PoissonSolver` for this grid size, boundary, weights and margin."""
     return PoissonSolver(tuple(int(s) for s in shape), boundary,
-                         tuple(float(w) for w in weights))
+                         tuple(float(w) for w in weights), margin=int(margin))
 
 
 def integrate_gradients(d_col, d_row, boundary: Boundary = "dirichlet",

@@ -17,7 +17,8 @@ a depth map), made position-dependent because a sensor's illumination is not uni
    ``node_spacing_px`` pixels; the gradient at a pixel is the bilinear blend of the four nodes
    around it.
 4. **Depth.** The gradients are integrated by :mod:`tactile_deploy.imaging.poisson` (zero depth
-   half a pixel outside the image: the far field is flat), with per-axis weights fitted at
+   ``poisson_margin_px`` pixels outside the image: the far field is flat, but the gel around a
+   contact near the border may still be sunk at the border), with per-axis weights fitted at
    calibration (one illumination axis is usually better resolved than the other).
 
 Frames and axes: frames are (H, W, 3) uint8 **RGB** camera images (not OpenCV's BGR). Image
@@ -96,6 +97,11 @@ class ShadingHeader(BaseModel):
                                     "the depth integration.")
     poisson_weight_y: float = Field(gt=0, description="Weight of the y (row) derivatives in the "
                                     "depth integration.")
+    poisson_margin_px: int = Field(0, ge=0, description="Pixels by which the zero-depth boundary "
+                                   "of the depth integration lies outside the image (0: half a "
+                                   "pixel outside it); with a margin the image border is drawn "
+                                   "towards zero depth instead of held there, so the gel still "
+                                   "sunk at the border around a contact near it keeps its depth.")
     n_presses: int = Field(ge=1, description="Number of ball presses the model was fitted on.")
     fit_metrics: dict[str, float] = Field(
         default_factory=dict,
@@ -290,8 +296,7 @@ class DepthFromShading:
         flat = model.table.reshape(-1, 2)
         # one complex gather per corner is much faster than gathering (., 2) rows
         self._table = (flat[:, 0] + 1j * flat[:, 1]).astype(np.complex64)
-        self._solver = poisson_solver(self.shape, "dirichlet",
-                                      (h.poisson_weight_x, h.poisson_weight_y))
+        self._solver = depth_solver(h)
 
     def image_gradients(self, frame) -> tuple[np.ndarray, np.ndarray]:
         """Gradients of depth along image columns and rows, (H, W) float32 each, mm per mm."""
@@ -329,6 +334,14 @@ class DepthFromShading:
         return self._solver.integrate(g_col * s, g_row * s)
 
     __call__ = depth
+
+
+def depth_solver(header: ShadingHeader):
+    """The cached :class:`~tactile_deploy.imaging.poisson.PoissonSolver` that integrates a
+    model's gradients: its image size, per-axis weights and boundary margin."""
+    return poisson_solver(header.image_shape, "dirichlet",
+                          (header.poisson_weight_x, header.poisson_weight_y),
+                          header.poisson_margin_px)
 
 
 def frame_to_depth(model: ShadingModel, frame, reference) -> np.ndarray:

@@ -43,8 +43,8 @@ from tactile_deploy.imaging.camera_mapping import (
     compact_remap,
     rectify,
 )
-from tactile_deploy.imaging.poisson import PoissonSolver, poisson_solver
-from tactile_deploy.imaging.shading import ShadingModel, frame_offset, reference_gain
+from tactile_deploy.imaging.poisson import PoissonSolver
+from tactile_deploy.imaging.shading import ShadingModel, depth_solver, frame_offset, reference_gain
 
 NoiseHandling = str  # "subtract" | "keep"
 
@@ -346,8 +346,7 @@ class ImagingPipeline:
             self.features = FeatureMaker(self.tables.reference_u8, camera.grid,
                                          readout.saturation_level)
         h = shading.header
-        self.solver = poisson_solver(h.image_shape, "dirichlet",
-                                     (h.poisson_weight_x, h.poisson_weight_y))
+        self.solver = depth_solver(h)
         self.depth_grid = depth_grid or OutputGrid()
         self.resampler = GridResampler(camera.grid, self.depth_grid)
         if noise_handling not in ("subtract", "keep"):
