@@ -46,7 +46,7 @@ def _cli(*args):
 
 def _version(folder, model=FAMILY):
     """A version made by copying ``model`` (no adaptation), made active."""
-    from tactile_deploy.adapt.versions import add_version, staging_folder
+    from tactile_deploy.runtime.plugins.versions import add_version, staging_folder
     from tactile_deploy.runtime.plugins import SensorPlugin
 
     plugin = SensorPlugin.load(folder)
@@ -194,7 +194,7 @@ def test_checks_that_need_no_frames_come_before_collecting_them(plugin_copy, tmp
         args += ["--device", "cuda:abc"]
         expect = "--device must be cpu, cuda or cuda:N (N: the index of a CUDA device), got 'cuda:abc'"
     else:
-        from tactile_deploy.adapt import versions
+        from tactile_deploy.runtime.plugins import versions
 
         real = versions.os.access  # root writes anywhere: the plugin folder says it is read-only
         monkeypatch.setattr(versions.os, "access", lambda path, mode, **k: Path(path) != plugin_copy and real(path, mode, **k))
@@ -274,7 +274,7 @@ def test_activate_makes_a_kept_version_active_and_rollback_returns(plugin_copy):
 
 
 def test_an_interrupted_add_leaves_no_version_folder(plugin_copy, monkeypatch):
-    from tactile_deploy.adapt import versions
+    from tactile_deploy.runtime.plugins import versions
     from tactile_deploy.runtime.plugins import SensorPlugin
 
     plugin = SensorPlugin.load(plugin_copy)

@@ -220,7 +220,7 @@ def test_dot_detection_finds_the_pins_apexes_and_the_true_camera(gelslim2, depth
     camera mapping), and the mapping fitted from them against that camera over the imaging grid.
     The blobs' centroids are the check's teeth: pulled towards the lit flank, they miss by px."""
     from calibration.camera.dots import calibrate_dots, detect_dots
-    from calibration.camera.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
     from tactile_deploy.imaging.camera_mapping import build_remap
     from tactile_deploy.indenters import ContactPose
 

@@ -363,7 +363,8 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     from calibration.rig.simulated import HertzForce, SimulatedRig
     from calibration.wizard.steps import plan_presses
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
-    from tactile_deploy.runtime.plugins import crop_camera_mapping, validate_plugin
+    from tactile_deploy.runtime.plugins import validate_plugin
+    from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
     from tactile_deploy.runtime.sources.npz import save_clip
 
     mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)

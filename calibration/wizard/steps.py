@@ -145,10 +145,10 @@ def step_camera(ctx: Context) -> Outcome:
     """Camera mapping from the target, and the imaging grid (what the camera sees)."""
     from calibration.camera.figure import plot_fit
     from calibration.camera.fitting import CalibrationError
-    from calibration.camera.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
     from calibration.wizard.figures import crop_figure
     from tactile_deploy.imaging.camera_mapping import save_mapping
-    from tactile_deploy.runtime.plugins import crop_camera_mapping
+    from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
 
     cfg = ctx.config.camera
     ref, _ = load_reference(ctx.work)
@@ -686,7 +686,7 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     from tactile_deploy.imaging.shading import load_shading
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.plugins import write_plugin
-    from tactile_deploy.runtime.predictor import MeshTopology
+    from tactile_deploy.pad.topology import MeshTopology
     from tactile_deploy.runtime.sources.video import write_video
 
     cfg = ctx.config

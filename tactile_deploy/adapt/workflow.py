@@ -14,7 +14,7 @@ Data flow of :func:`adapt_plugin` (``tactile-deploy adapt``)::
       -> improved (the network's own, fp32, and the written model's beats both)? before/after
          figure, report
          -> plugin version adapted/v<n>, made active in adapted/history.json (atomic; plugin.json untouched;
-            tactile_deploy.adapt.versions)
+            tactile_deploy.runtime.plugins.versions)
 
 The label-free RMSE (mm) is the paper's metric: RMS over the held-out maps and the pixels the
 sensor sees of rendered mesh minus target. For an ONNX model its meshes are rendered by the
@@ -173,7 +173,7 @@ def prepare_adaptation(plugin, options: AdaptOptions, step_folder: str | Path | 
     """Every check that needs no frames, done before any are collected: the plugin's
     adapted/history.json and its active version, a writable plugin folder (when writing), the
     step (its card, files, the device) and that it belongs to the plugin's family model."""
-    from tactile_deploy.adapt.versions import check_writable, load_history
+    from tactile_deploy.runtime.plugins.versions import check_writable, load_history
 
     load_history(plugin)
     plugin.adapted_model_path()  # the active version: present and unchanged
@@ -191,7 +191,7 @@ def evaluate_model(model_path: str | Path, pad, depth_mm: np.ndarray, target_mm:
     ``depth_mm`` (N, 128, 128) mm rendered by the depth camera, against ``target_mm`` with the
     step's weighting (``weight`` (128, 128)); rendered kept."""
     from tactile_deploy.camera.depth import DepthCamera
-    from tactile_deploy.runtime.predictor import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
     session = make_session(model_path, threads=1, providers="cpu")
     d = np.asarray(depth_mm, np.float32)[:, None]
@@ -211,7 +211,7 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
     import shutil
     import tempfile
 
-    from tactile_deploy.adapt.versions import ADAPTED_DIR, add_version, staging_folder
+    from tactile_deploy.runtime.plugins.versions import ADAPTED_DIR, add_version, staging_folder
     from tactile_deploy.adapt.weights import adaptation_metadata, read_adapted_weights, write_metadata_entries
     from tactile_deploy.pad.asset import load_pad
 
@@ -326,7 +326,7 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
     """Write model.onnx (and model_fp32.onnx when the family graph is int8) into ``folder``;
     check the fp32 graph against the step program's displacements on the held-out maps."""
     from tactile_deploy.adapt.weights import adaptation_metadata, quantise_int8, write_adapted_onnx
-    from tactile_deploy.runtime.predictor import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
     card = step.card
     fp32_src = card.path(step.folder, "fp32_model")
@@ -361,7 +361,7 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
 def _ood_shares(family: Path, adapted: Path, depth: np.ndarray) -> dict:
     """Share of the held-out maps above the model's ood_threshold, family vs adapted model (the
     adapted encoder feeds the same out-of-distribution decoder)."""
-    from tactile_deploy.runtime.predictor import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
     out = {}
     for key, path in (("family", family), ("adapted", adapted)):
