@@ -202,7 +202,8 @@ def fem_command(
         else:
             from calibration.wizard.config import wizard_config_from_dict
             from calibration.wizard.state import WorkFolder
-            from calibration.wizard.steps import StepError, contacts_from_work
+            from calibration.wizard.context import StepError
+            from calibration.wizard.press_data import contacts_from_work
 
             wf = WorkFolder(work)
             if not wf.exists():
