@@ -19,6 +19,9 @@ import time
 
 import numpy as np
 
+from tactile_deploy.indenters import ContactPose, Indenter, get_indenter, library_entry
+from tactile_deploy.raster import RasterGrid, rasterize_triangles
+
 
 def _timeit(fn, repeats: int) -> dict:
     times = []
@@ -47,8 +50,6 @@ def run(small: bool = False) -> dict[str, dict]:
     """Run every case; ``small``: fewer repeats and smaller grids. Returns timings per case."""
     import trimesh
 
-    from tactile_deploy.indenters import ContactPose, Indenter, get_indenter, library_entry
-    from tactile_deploy.raster import RasterGrid, rasterize_triangles
 
     repeats = 2 if small else 15
     results = {}

@@ -38,7 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.atomic import write_json
 from tactile_deploy.runtime.pipeline import FrameError, Laps, frame_to_mesh
+from tactile_deploy.runtime.preview import MeshRenderer, compose_preview, write_png
+from tactile_deploy.runtime.writers import MeshWriter
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +186,6 @@ class Runner:
         o = self.opt
         topo = self.predictor.topology
         if o.out_dir is not None:
-            from tactile_deploy.runtime.writers import MeshWriter
 
             self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
             self._csv_tmp = o.out_dir / ".frames.csv.partial"
@@ -191,7 +193,6 @@ class Runner:
             self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
                             "total_normal_force_n,source_label\n")
         if o.view:
-            from tactile_deploy.runtime.preview import MeshRenderer
 
             if o.preview_dir is None:
                 o.preview_dir = o.out_dir
@@ -276,7 +277,6 @@ class Runner:
         s.stage_p50_ms = {k: round(r.pct(50), 4) for k, r in self._stages.items()}
         self._close_outputs()
         if self.opt.out_dir is not None:
-            from tactile_deploy.atomic import write_json
 
             try:
                 write_json(self.opt.out_dir / "run.json",
@@ -375,8 +375,6 @@ class Runner:
                         pred.ood_score)
 
     def _write_preview(self, index, pred, force, name: str = "preview.png") -> None:
-        from tactile_deploy.runtime.preview import compose_preview, write_png
-
         if self.opt.preview_dir is None:
             return
         mesh_rgb = self.renderer.render(pred.vertices_mm)

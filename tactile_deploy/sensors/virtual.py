@@ -36,9 +36,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tactile_deploy.indenters import ContactPose
+from tactile_deploy.camera.depth import DepthCamera
+from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
+from tactile_deploy.indenters import ContactPose, get_indenter
+from tactile_deploy.optics.render import OpticsRenderer, grid_centres, grid_for_camera
+from tactile_deploy.optics.surface import SurfaceBuilder
 from tactile_deploy.sensors.config import VirtualSensorConfig
 from tactile_deploy.sensors.effects import get_effect
+from tactile_deploy.simulation.contact import (
+    ContactError,
+    ContactSample,
+    get_camera,
+    get_simulator,
+)
 
 #: Deepest indentation (mm) a virtual sensor accepts, as for ``simulate`` (half the gel).
 MAX_DEPTH_MM = 1.5
@@ -181,7 +191,6 @@ class VirtualSensor:
     @property
     def simulator(self):
         if self._simulator is None:
-            from tactile_deploy.simulation.contact import get_simulator
 
             self._simulator = get_simulator(self.config.material, self.config.pad)
         return self._simulator
@@ -190,7 +199,6 @@ class VirtualSensor:
     def renderer(self):
         """The :class:`~tactile_deploy.optics.OpticsRenderer` (rest surface from the effects)."""
         if self._renderer is None:
-            from tactile_deploy.optics.render import OpticsRenderer, grid_for_camera
 
             grid = grid_for_camera(self.optics)
             rest = self._rest_height_grid(grid)
@@ -201,7 +209,6 @@ class VirtualSensor:
     @property
     def surface(self):
         if self._surface is None:
-            from tactile_deploy.optics.surface import SurfaceBuilder
 
             self._surface = SurfaceBuilder(self.simulator.mesh, self.renderer.grid,
                                            smooth_mm=self.config.surface_smooth_mm)
@@ -213,8 +220,6 @@ class VirtualSensor:
         _ = self.renderer, self.surface
 
     def _rest_height_grid(self, grid) -> np.ndarray:
-        from tactile_deploy.optics.render import grid_centres
-
         x, y = grid_centres(grid)
         xy = np.stack([x.ravel(), y.ravel()], axis=1)
         return self.rest_height_mm(xy).reshape(x.shape).astype(np.float32)
@@ -238,7 +243,6 @@ class VirtualSensor:
     def indenter(self, name: str):
         """Library indenter by name or mesh path (cached)."""
         if name not in self._indenters:
-            from tactile_deploy.indenters import get_indenter
 
             self._indenters[name] = get_indenter(name)
         return self._indenters[name]
@@ -286,7 +290,6 @@ class VirtualSensor:
         the frame was shaded from, sampled at the standard depth grid's pixel centres."""
         from scipy.ndimage import map_coordinates
 
-        from tactile_deploy.simulation.contact import ContactSample, get_camera
 
         if isinstance(indenter, str):
             indenter = self.indenter(indenter)
@@ -339,7 +342,6 @@ class VirtualSensor:
         Raises :class:`tactile_deploy.simulation.contact.ContactError` for depths beyond
         ``MAX_DEPTH_MM`` or poses off the pad.
         """
-        from tactile_deploy.simulation.contact import ContactError
 
         if isinstance(indenter, str):
             indenter = self.indenter(indenter)
@@ -390,7 +392,6 @@ class VirtualSensor:
 
     def _render_depth(self, vertices_mm: np.ndarray) -> np.ndarray:
         if self._depth_camera is None:
-            from tactile_deploy.camera.depth import DepthCamera
 
             self._depth_camera = DepthCamera()
         return self._depth_camera.render(self.simulator.mesh, vertices_mm).depth_mm
@@ -503,7 +504,6 @@ class VirtualSensor:
         The bounding box of the view, shrunk about its centre until its outline images inside
         the frame (bisection, to 1e-3 of its size).
         """
-        from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
 
         xy = self.renderer.pixel_xy_mm.reshape(-1, 2)
         lo, hi = xy.min(axis=0), xy.max(axis=0)

@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 from tactile_deploy.runtime.sources.base import FrameSource, SourceError
+from tactile_deploy.runtime.sources.camera import OpenCVCamera
 from tactile_deploy.runtime.sources.config import (
     SOURCE_FORMS,
     VIDEO_SUFFIXES,
@@ -21,6 +22,10 @@ from tactile_deploy.runtime.sources.config import (
     VideoSourceConfig,
     VirtualSourceConfig,
 )
+from tactile_deploy.runtime.sources.images import ImageFolderSource
+from tactile_deploy.runtime.sources.npz import NpzSource
+from tactile_deploy.runtime.sources.video import VideoSource
+from tactile_deploy.runtime.sources.virtual import VirtualSensorSource
 
 
 def open_clip(path: str | os.PathLike, loop: bool = False, name: str | None = None) -> FrameSource:
@@ -28,11 +33,9 @@ def open_clip(path: str | os.PathLike, loop: bool = False, name: str | None = No
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        from tactile_deploy.runtime.sources.npz import NpzSource
 
         return NpzSource(path, loop=loop, name=name)
     if suffix in VIDEO_SUFFIXES:
-        from tactile_deploy.runtime.sources.video import VideoSource
 
         return VideoSource(path, loop=loop, name=name)
     raise SourceError(f"{path}: a clip must be a .npz recording or a video "
@@ -65,29 +68,20 @@ def make_source(config, plugin=None, from_manifest: bool = False, **kwargs) -> F
         return open_clip(plugin.demo_clip_path(), loop=config.loop,
                          name=f"demo clip of {plugin.name!r}")
     if isinstance(config, CameraSourceConfig):
-        from tactile_deploy.runtime.sources.camera import OpenCVCamera
-
         return OpenCVCamera(config, **kwargs)
     if isinstance(config, VideoSourceConfig):
-        from tactile_deploy.runtime.sources.video import VideoSource
-
         return VideoSource(_resolve(config.path, plugin, from_manifest), loop=config.loop,
                            **kwargs)
     if isinstance(config, ImageFolderSourceConfig):
-        from tactile_deploy.runtime.sources.images import ImageFolderSource
-
         return ImageFolderSource(_resolve(config.path, plugin, from_manifest), config.pattern,
                                  config.fps, config.loop)
     if isinstance(config, NpzSourceConfig):
-        from tactile_deploy.runtime.sources.npz import NpzSource
-
         return NpzSource(_resolve(config.path, plugin, from_manifest), loop=config.loop)
     if isinstance(config, VirtualSourceConfig):
         name = config.sensor or (_virtual_sensor_of(plugin) if plugin is not None else None)
         if name is None:
             raise SourceError("a virtual source needs a sensor name: --source virtual:NAME or "
                               "--sensor NAME")
-        from tactile_deploy.runtime.sources.virtual import VirtualSensorSource
 
         return VirtualSensorSource(name, n_frames=config.n_frames, seed=config.seed,
                                    loop=config.loop)
