@@ -45,7 +45,6 @@ def write_adapted_onnx(card: AdaptationCard, fp32_path: str | Path, weights: dic
     onnx = require_onnx()
     from onnx import numpy_helper
 
-
     model = onnx.load(str(fp32_path))
     inits = {init.name: init for init in model.graph.initializer}
     for m in card.parameter_map:
@@ -88,7 +87,6 @@ def quantise_int8(fp32_path: str | Path, out_path: str | Path, calibration_mm: n
         QuantType,
         quantize_static,
     )
-
 
     cal = np.asarray(calibration_mm, np.float32)
 

@@ -231,7 +231,6 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
     import shutil
     import tempfile
 
-
     t_start = time.perf_counter()
     step = step_folder if isinstance(step_folder, StepProgram) else prepare_adaptation(plugin, options, step_folder)
     card = step.card
@@ -393,7 +392,6 @@ def before_after_figure(depth, target, before, after, weight, path: Path, rmse_b
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
 
     pick = np.argsort([-float((t * weight).max()) for t in target])[:n]
     cols = ["input depth I", "target", "rendered before", "rendered after", "error before", "error after"]

@@ -50,7 +50,6 @@ def run(small: bool = False) -> dict[str, dict]:
     """Run every case; ``small``: fewer repeats and smaller grids. Returns timings per case."""
     import trimesh
 
-
     repeats = 2 if small else 15
     results = {}
     sphere = trimesh.creation.uv_sphere(radius=8.0, count=[36, 72])

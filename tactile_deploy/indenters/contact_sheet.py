@@ -48,7 +48,6 @@ def render_contact_sheet(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     names = list(names) if names is not None else list_indenters()
     half = VIEW_HALF_WIDTH_MM
     rows = -(-len(names) // columns)

@@ -26,7 +26,6 @@ def contact_sheet(path: Path, sensors=None, seed: int = 0) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     names = list(sensors or list_sensors())
     contacts = [("sphere_r4", ContactPose(x_mm=1.0, y_mm=0.5, depth_mm=0.6), "sphere r 4 mm"),
                 ("cross", ContactPose(x_mm=-0.5, y_mm=0.0, theta_deg=20.0, depth_mm=0.5),

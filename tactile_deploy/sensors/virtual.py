@@ -290,7 +290,6 @@ class VirtualSensor:
         the frame was shaded from, sampled at the standard depth grid's pixel centres."""
         from scipy.ndimage import map_coordinates
 
-
         if isinstance(indenter, str):
             indenter = self.indenter(indenter)
         out, result = self._press(indenter, pose, rng, True)

@@ -72,7 +72,6 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30.0, fourcc: str 
     """Write RGB frames (N, H, W, 3) uint8 as a video file (atomic). Returns the path."""
     import cv2
 
-
     frames = np.asarray(frames)
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
         raise ValueError(f"frames must be (N, H, W, 3) uint8 RGB, got {frames.shape} {frames.dtype}")
