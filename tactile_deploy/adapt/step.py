@@ -20,13 +20,10 @@ from typing import Callable
 
 import numpy as np
 
-from tactile_deploy.adapt.card import (
-    AdaptationCard,
-    CardError,
-    load_card,
-)
+from tactile_deploy.adapt.card import AdaptationCard, CardError, load_card
 from tactile_deploy.adapt.weights import INSTALL_HINT, AdaptationUnavailable
 from tactile_deploy.checksums import file_sha256
+from tactile_deploy.safe_torch import weights_only_loads
 
 
 def require_torch():
@@ -71,7 +68,8 @@ class StepProgram:
             raise AdaptationUnavailable("--device cuda was asked for, but this torch has no CUDA device; use "
                                         "--device cpu or install a CUDA build of torch")
         try:
-            program = torch.export.load(str(path))
+            with weights_only_loads():       # no code from the file runs (docs/adaptation.md)
+                program = torch.export.load(str(path))
         except Exception as e:  # torch raises several types for damaged or foreign files
             raise CardError(f"{path}: torch cannot load the step program ({type(e).__name__}: {e}); it was "
                             f"exported with torch {card.versions.get('torch')}, this is torch {torch.__version__}: "
