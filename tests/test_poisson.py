@@ -147,3 +147,46 @@ def test_solver_cache_and_input_errors():
         integrate_gradients(np.zeros((4, 4)), np.zeros((4, 5)))
     with pytest.raises(ValueError, match="2-D"):
         integrate_gradients(np.zeros(4), np.zeros(4))
+
+
+def test_margin_is_the_least_squares_surface_on_the_padded_grid():
+    """A margin of m pixels: the explicit Dirichlet system on the grid grown by m pixels on each
+    side, with zero derivatives there, solved by scipy and cut back to the image."""
+    h, w, m = 9, 12, 4
+    rng = np.random.default_rng(5)
+    gc = rng.standard_normal((h, w))
+    gr = rng.standard_normal((h, w))
+    weights = (0.2, 1.0)
+    div = edge_divergence(np.pad(gc, m), np.pad(gr, m), weights).astype(np.float64)
+    ref = spla.spsolve(_laplacian((h + 2 * m, w + 2 * m), "dirichlet", weights).tocsc(),
+                       div.ravel()).reshape(h + 2 * m, w + 2 * m)[m:-m, m:-m]
+    got = PoissonSolver((h, w), "dirichlet", weights, margin=m).integrate(gc, gr)
+    assert got.shape == (h, w)
+    assert np.abs(got - ref).max() < 1e-4 * np.abs(ref).max()
+    assert poisson_solver((h, w), "dirichlet", weights, m) is poisson_solver((h, w), "dirichlet",
+                                                                            weights, m)
+    with pytest.raises(ValueError, match="margin must be a whole number"):
+        PoissonSolver((h, w), margin=-1)
+
+
+def test_margin_keeps_a_surface_that_is_still_deep_at_the_border():
+    """An analytic bump centred 6 px inside the image's corner (a press near the corner whose
+    surroundings are still sunk at the border): with the boundary half a pixel outside the image
+    the bump is flattened towards the border; a margin draws the border towards zero instead of
+    holding it there (the bump's continuation outside the image is unknown, so it softens the
+    error rather than removing it: 0.117 -> 0.077 of the bump's height with 24 px, measured)."""
+    h, w, s = 60, 48, 9.0
+    rows, cols = np.mgrid[0:h, 0:w]
+    r0, c0 = h - 7.0, 6.0
+    z = np.exp(-((rows - r0) ** 2 + (cols - c0) ** 2) / (2 * s ** 2))
+    dc, dr = -(cols - c0) / s ** 2 * z, -(rows - r0) / s ** 2 * z
+    core = np.hypot(rows - r0, cols - c0) < s
+
+    def shape_error(depth):     # RMS inside the bump's core after removing the mean offset
+        e = (depth - z)[core]
+        return np.sqrt(np.mean((e - e.mean()) ** 2))
+
+    tight = shape_error(PoissonSolver((h, w), "dirichlet").integrate(dc, dr))
+    wide = shape_error(PoissonSolver((h, w), "dirichlet", margin=24).integrate(dc, dr))
+    assert tight > 0.1                  # 10 % of the bump's height lost to the zero border
+    assert wide < 0.7 * tight
