@@ -81,6 +81,60 @@ def accuracy(presses, folds: int = 7, mlp_steps: int = 800):
                            workers=2)
 
 
+def field_plans(presses, comp) -> dict:
+    """Our method under the hold-out plans of :mod:`calibration.shading.field`: the 7-fold
+    results of ``comp`` and the two halves (calibrated on odd- or even-numbered presses)."""
+    from calibration.shading.compare import method_fitters
+    from calibration.shading.field import PlanResult, held_out_plans
+
+    plans = {"7-fold": PlanResult("7-fold", comp.results["lut"], len(presses) - 6)}
+    plans.update(held_out_plans(presses, method_fitters(BALL_RADIUS_MM, MM_PER_PX)["lut"],
+                                BALL_RADIUS_MM, MM_PER_PX, plans=("odd -> even", "even -> odd")))
+    return plans
+
+
+def field_markdown(presses, plans: dict) -> str:
+    """Tables of the whole field: each hold-out plan by place, and every corner and edge press."""
+    from calibration.shading.field import CORNER_RADII, EDGE_RADII, plan_summary, press_places
+
+    places = dict(zip(presses.names, press_places(presses.circles, presses.shape)))
+    lines = [
+        (f"The whole field. Corner presses: the labelled circle within {CORNER_RADII} contact radii "
+         f"of two image borders; edge presses: within {EDGE_RADII} of one; inside: the rest. Hold-out "
+         "plans: 7-fold as above; odd -> even: calibrated on the 21 odd-numbered presses, judged on "
+         "the 21 even-numbered ones; even -> odd the reverse (fewer calibration presses: a stricter "
+         "plan). Targets per press: shape error <= 40 um, fitted radius within 5 %."),
+        "",
+        ("| plan (calibration presses) | shape mean / worst (um) | radius worst | corner: shape "
+         "worst, radius worst | edge: shape worst, radius worst | inside: shape worst, radius "
+         "worst | presses missing a target |"),
+        "|---|---:|---:|---|---|---|---|",
+    ]
+    for name, res in plans.items():
+        s = plan_summary(res, places)
+        cells = []
+        for place in ("corner", "edge", "inside"):
+            b = s["by_place"].get(place)
+            cells.append("-" if b is None else
+                         f"{b['shape_worst_um']:.1f} um, {100 * b['radius_worst']:.1f} % ({b['n']})")
+        lines.append(f"| {name} ({res.calibration_presses}) | {s['shape_mean_um']:.1f} / "
+                     f"{s['shape_worst_um']:.1f} | {100 * s['radius_worst']:.1f} % | "
+                     + " | ".join(cells) + f" | {', '.join(s['misses']) or 'none'} |")
+    edge_names = [n for n in presses.names if places[n] != "inside"]
+    lines += ["", "Corner and edge presses, held out: shape error (um) / fitted radius error per plan.",
+              "", "| press | place | labelled circle (col, row, radius px) | "
+              + " | ".join(plans) + " |", "|---|---|---|" + "---:|" * len(plans)]
+    for n in edge_names:
+        c = presses.circles[presses.names.index(n)]
+        row = []
+        for res in plans.values():
+            r = next((r for r in res.results if r.name == n), None)
+            row.append("" if r is None else f"{r.shape_um:.1f} / {100 * r.radius_error:+.1f} %")
+        lines.append(f"| {n} | {places[n]} | ({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) | "
+                     + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
 def speed(presses, n: int = 50) -> dict[str, tuple[float, float]]:
     """(wall, CPU) median times of the runtime steps (ms) and of the calibration (s)."""
     import numpy as np
@@ -552,6 +606,8 @@ def main(argv=None) -> None:
     comp = accuracy(presses, folds, steps)
     timings = speed(presses, 10 if args.small else 50)
     text = markdown(presses, comp, folds, timings)
+    if not args.small:
+        text += "\n\n" + field_markdown(presses, field_plans(presses, comp))
     print(text)
     if not args.no_write and not args.small:
         from bench.report import write_section

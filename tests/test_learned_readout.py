@@ -287,3 +287,106 @@ def test_finetuning_without_torch_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(FinetuneUnavailable, match=r"tactile-deploy\[train\].*readout_steps to 0"):
         finetune_unit_readout(None, [], [], [], Path("x.onnx"), "unit")
+
+
+def test_training_features_are_the_runtime_features():
+    """The numpy features of the training data (made where OpenCV is not installed) equal the
+    runtime's FeatureMaker on the same frames, and both agree on the channel count."""
+    from tactile_deploy.imaging import learned_readout as lr
+    from tactile_deploy.imaging.camera_mapping import grid_centres_mm
+    from tactile_deploy.imaging.shading import frame_offset
+    from tactile_deploy.learning.readout_network import N_FEATURES
+    from training.shading_net import data
+
+    assert N_FEATURES == lr.N_FEATURES
+    assert (data.COLOUR_SCALE_GREY, data.POSITION_SCALE_MM) == (lr.COLOUR_SCALE_GREY,
+                                                               lr.POSITION_SCALE_MM)
+    rng = np.random.default_rng(3)
+    ref = _reference(rng)
+    frames = np.clip(ref[None].astype(int) + rng.integers(-40, 60, (3, *ref.shape)), 0,
+                     255).astype(np.uint8)
+    make = FeatureMaker(ref, GRID)
+    offsets = np.array([frame_offset(f, ref) for f in frames])
+    x, y = grid_centres_mm(GRID)
+    got = data.readout_features(frames, offsets, ref, np.stack([x, y]))
+    want = np.stack([make(f) for f in frames])
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_crop_file_round_trip(tmp_path):
+    """Crops written and read back: frames exact, depth to 1 um, features as before; a crop
+    file of other settings is refused by the training command."""
+    from training.shading_net.crops import Crops, contact_crops, load_crops, read_spec, save_crops
+    from training.shading_net.data import UnitPresses
+
+    rng = np.random.default_rng(8)
+    h, w, n = 20, 30, 5
+    ref = rng.integers(50, 250, (h, w, 3)).astype(np.uint8)
+    images = np.clip(ref[None].astype(int) + rng.integers(-80, 80, (n, h, w, 3)), 0,
+                     255).astype(np.uint8)
+    depth = np.zeros((n, h, w), np.float32)
+    for k in range(n):
+        depth[k, rng.integers(0, h), rng.integers(0, w)] = rng.uniform(0.1, 1.2)
+        depth[k] -= 0.02 * rng.random((h, w))            # the bulge around contacts
+    xy = np.stack(np.meshgrid(np.arange(w) * 0.27, np.arange(h) * -0.27)).astype(np.float32)
+    presses = UnitPresses(images, rng.normal(0, 5, (n, 3)).astype(np.float32), ref, xy, depth,
+                          0.27, np.array(["ball", "library", "procedural", "ball", "ball"]))
+    crops = Crops.concatenate([contact_crops(presses, rng, 12), contact_crops(presses, rng, 12)])
+    assert crops.frames.shape == (2 * n, 12, 12, 3) and crops.unit.max() == 1
+    path = tmp_path / "crops.npz"
+    save_crops(path, crops, {"seed": 1})
+    back = load_crops(path)
+    assert np.array_equal(back.frames, crops.frames)
+    assert np.abs(back.depth_mm - crops.depth_mm).max() <= 0.5e-3 + 1e-7
+    np.testing.assert_allclose(back.features(), crops.features(), atol=1e-6)
+    assert read_spec(path) == {"seed": 1}
+
+
+def test_procedural_indenters_are_what_they_draw():
+    """Every family gives an indenter whose envelope, sampled at its grid's pixel centres, is the
+    drawn height map (lowest point 0, finite only on the footprint); a flat punch presses flat."""
+    from tactile_deploy.indenters import ContactPose
+    from training.shading_net.shapes import FAMILIES, GridIndenter, random_indenter
+
+    rng = np.random.default_rng(11)
+    for family in FAMILIES:
+        ind = random_indenter(rng, family)
+        g = ind.envelope_grid()
+        iy, ix = np.nonzero(np.isfinite(g.heights_mm))
+        q = np.c_[g.x0_mm + ix * g.pitch_mm, g.y0_mm + iy * g.pitch_mm]
+        np.testing.assert_allclose(ind.envelope_mm(q), g.heights_mm[iy, ix], atol=1e-6)
+        assert g.heights_mm[iy, ix].min() == 0.0 and 0 < ind.footprint_radius_mm <= 17.5
+    square = np.where((np.abs(np.arange(101) - 50)[:, None] <= 30)
+                      & (np.abs(np.arange(101) - 50)[None, :] <= 30), 0.0, np.inf)
+    punch = GridIndenter("square", square, pitch_mm=0.05)
+    pts = np.array([[0.0, 0.0], [1.4, -1.4], [1.6, 0.0]])
+    got = punch.intrusion_mm(pts, ContactPose(x_mm=0.0, y_mm=0.0, depth_mm=0.4))
+    assert np.allclose(got[:2], 0.4) and got[2] == -np.inf      # 1.6 mm is beyond the 1.5 mm half-side
+
+
+def test_crops_train_where_only_torch_is_installed(tmp_path):
+    """The fitting command imports neither OpenCV nor pydantic, and its weights export through
+    the training command's --weights with the card naming them."""
+    import subprocess
+    import sys
+
+    from training.shading_net.crops import Crops, save_crops
+
+    rng = np.random.default_rng(2)
+    n, h, w = 6, 16, 16
+    ref = rng.integers(80, 200, (1, 24, 24, 3)).astype(np.uint8)
+    crops = Crops(rng.integers(0, 256, (n, h, w, 3)).astype(np.uint8),
+                  np.zeros((n, 3), np.float32), rng.uniform(0, 0.5, (n, h, w)).astype(np.float32),
+                  np.zeros(n, np.int32), np.full(n, 4, np.int32), np.full(n, 2, np.int32), ref,
+                  rng.normal(size=(1, 2, 24, 24)).astype(np.float32), np.array(["ball"] * n), 0.27)
+    save_crops(tmp_path / "c.npz", crops, {})
+    code = ("import sys; sys.modules['cv2'] = None; sys.modules['pydantic'] = None; "
+            "from training.shading_net.fitting import main; "
+            f"main(['--crops', r'{tmp_path / 'c.npz'}', '--weights-out', r'{tmp_path / 'w.pt'}', "
+            "'--epochs', '2', '--width', '4', '--device', 'cpu'])")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    from tactile_deploy.safe_torch import load_torch_file
+
+    saved = load_torch_file(tmp_path / "w.pt")
+    assert saved["settings"]["width"] == 4 and len(saved["losses"]) == 2

@@ -78,6 +78,19 @@ def test_real_presses_cross_validated_against_the_ball(real_presses):
         assert comp.summaries[key].radius_error_worst > 0.05, table
 
 
+def test_places_in_the_field():
+    """Corner, edge and inside presses by their distance to the image borders in contact radii
+    (the real presses' corner press 0004 and the press nearest a side, 0005)."""
+    from calibration.shading.field import press_numbers, press_places
+
+    circles = [(85, 235, 42), (170, 211, 41), (120, 160, 40), (20, 300, 10), (60, 160, 30)]
+    assert list(press_places(circles, (320, 240))) == ["corner", "edge", "inside", "corner",
+                                                       "edge"]
+    names = PressSet(np.zeros((4, 4, 3), np.uint8), np.zeros((2, 4, 4, 3), np.uint8),
+                     ["0007.png", "press.png"])
+    assert list(press_numbers(names)) == [7, 2]
+
+
 def test_illumination_drift_is_removed(real_presses):
     """A uniform change of illumination (grey-level offset per channel) of a press frame
     barely moves its reconstruction; without the offset correction it would (the RGB table)."""

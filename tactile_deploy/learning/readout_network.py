@@ -17,7 +17,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from tactile_deploy.atomic import atomic_path
-from tactile_deploy.imaging.learned_readout import N_FEATURES
+
+#: Input channels: ``tactile_deploy.imaging.learned_readout.N_FEATURES`` (a test checks they
+#: agree); not imported from there so that the network can be trained where OpenCV and pydantic
+#: are not installed.
+N_FEATURES = 11
 
 #: Depth is learned in these units (mm) so that its loss weighs like the gradients'.
 DEPTH_UNIT_MM = 0.1

@@ -4,11 +4,18 @@
         --out exported/gelslim_readout.onnx --overwrite
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
-(features and true depth on each unit's imaging grid) -> 48 x 48-cell crops around each contact
-(its deepest cell, jittered by up to 8 cells, inside the grid) -> AdamW with a one-cycle
-learning rate, loss: mean squared error of the gradients (mm per mm) and of the depth (in
-``DEPTH_UNIT_MM``) -> ONNX (opset 17, dynamic batch and grid size) with the feature contract in
-its metadata, and a card (``.json`` beside it) with the data, the settings and the final loss.
+(8-bit rectified frames and true depth on each unit's imaging grid: balls, the indenter library
+and procedural faces, ``--mix``) -> ``--crop`` x ``--crop``-cell crops around each contact (its
+deepest cell, jittered by up to 8 cells, inside the grid; :mod:`.crops`) -> :mod:`.fitting`:
+AdamW with a one-cycle learning rate, loss: mean squared error of the gradients (mm per mm) and
+of the depth (in ``DEPTH_UNIT_MM``) -> ONNX (opset 17, dynamic batch and grid size) with the
+feature contract in its metadata, and a card (``.json`` beside it) with the data, the settings
+and the final loss.
+
+The crops can be trained elsewhere (a GPU machine without OpenCV or pydantic):
+``--data-only --data-cache CROPS.npz`` writes them and stops; ``python -m
+training.shading_net.fitting --crops CROPS.npz --weights-out W.pt`` trains there; ``--weights
+W.pt`` (with the same data options) exports those weights with their card here.
 """
 
 from __future__ import annotations
@@ -18,72 +25,26 @@ import hashlib
 import json
 import platform
 import time
-import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from tactile_deploy.learning.readout_network import export_onnx, targets
+from tactile_deploy.learning.readout_network import export_onnx
 
-CROP_CELLS = 48
-JITTER_CELLS = 8
-
-
-def contact_crops(features: np.ndarray, target: np.ndarray, rng: np.random.Generator,
-                  size: int = CROP_CELLS) -> tuple[np.ndarray, np.ndarray]:
-    """``size`` x ``size`` crops of features (N, C, H, W) and targets (N, K, H, W) around each
-    press's deepest cell (the last target channel is the depth)."""
-    n, _, h, w = features.shape
-    size_h, size_w = min(size, h), min(size, w)
-    fx, tx = [], []
-    for k in range(n):
-        r, c = np.unravel_index(int(np.argmax(target[k, -1])), (h, w))
-        r0 = int(np.clip(r - size_h // 2 + rng.integers(-JITTER_CELLS, JITTER_CELLS + 1), 0, h - size_h))
-        c0 = int(np.clip(c - size_w // 2 + rng.integers(-JITTER_CELLS, JITTER_CELLS + 1), 0, w - size_w))
-        fx.append(features[k, :, r0:r0 + size_h, c0:c0 + size_w])
-        tx.append(target[k, :, r0:r0 + size_h, c0:c0 + size_w])
-    return np.stack(fx), np.stack(tx)
-
-
-def train_network(x: np.ndarray, y: np.ndarray, width: int, epochs: int, seed: int,
-                  batch: int = 32, lr: float = 2e-3, gradient_weight: float = 1.0, log=print):
-    """Train a :class:`tactile_deploy.learning.readout_network.ReadoutNet` on crops ``x`` (N, 11, h, w), ``y`` (N, 3, h, w);
-    loss: mean squared error, the gradient channels weighted by ``gradient_weight`` against
-    the depth's 1; returns (network, per-epoch mean losses)."""
-    import torch
-
-    from tactile_deploy.learning.readout_network import ReadoutNet
-
-    torch.manual_seed(seed)
-    net = ReadoutNet(width)
-    opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
-    xt, yt = torch.from_numpy(x), torch.from_numpy(y)
-    steps_per_epoch = max(len(xt) // batch, 1)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=epochs * steps_per_epoch)
-    weight = torch.tensor([gradient_weight, gradient_weight, 1.0]).view(1, 3, 1, 1)
-    losses = []
-    t0 = time.perf_counter()
-    for epoch in range(epochs):
-        perm = torch.randperm(len(xt))
-        total = 0.0
-        for i in range(steps_per_epoch):
-            idx = perm[i * batch:(i + 1) * batch]
-            loss = (((net(xt[idx]) - yt[idx]) ** 2) * weight).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-            total += loss.item()
-        losses.append(total / steps_per_epoch)
-        log(f"epoch {epoch + 1}/{epochs}: loss {losses[-1]:.3g} ({time.perf_counter() - t0:.0f} s)")
-    return net.eval(), losses
+#: Default side of the training crops, cells: the imaging grid's height on the GelSlim designs
+#: (64 cells, 17.5 mm), so that contacts up to the view's size are seen whole.
+CROP_CELLS = 64
+#: Default shares of the presses: balls, the indenter library, procedural faces.
+MIX = (0.35, 0.15, 0.5)
 
 
 def _cache_spec(args) -> dict:
     """What the crops of ``--data-cache`` depend on (stored in it, checked when it is reused)."""
+    from .crops import JITTER_CELLS
+
     return {"design": args.design, "units": args.units, "presses": args.presses, "seed": args.seed,
-            "crop_cells": CROP_CELLS, "jitter_cells": JITTER_CELLS}
+            "crop_cells": args.crop, "jitter_cells": JITTER_CELLS, "mix": list(args.mix)}
 
 
 def _check_args(args) -> None:
@@ -117,14 +78,25 @@ def _check_args(args) -> None:
     if existing and not args.overwrite:
         raise UsageError(f"--out {out}: {' and '.join(map(str, existing))} exist{'s' if len(existing) == 1 else ''}: "
                          "pass --overwrite to replace, or choose another --out")
+    if args.crop < 8:
+        raise UsageError(f"--crop must be >= 8 cells, got {args.crop}")
+    if len(args.mix) != 3 or min(args.mix) < 0 or abs(sum(args.mix) - 1.0) > 1e-6:
+        raise UsageError(f"--mix must be three shares >= 0 (balls, library, procedural) that sum to 1, "
+                         f"got {args.mix}")
+    if args.data_only and args.data_cache is None:
+        raise UsageError("--data-only needs --data-cache (where the crops are written)")
+    if args.weights is not None and not args.weights.is_file():
+        raise UsageError(f"--weights {args.weights} not found: give the .pt written by "
+                         "python -m training.shading_net.fitting")
     cache = args.data_cache
     if cache is not None and cache.exists():
+        from .crops import CropFileError, read_spec
+
         try:
-            with np.load(cache, allow_pickle=False) as z:
-                have = json.loads(str(z["spec"])) if "spec" in z.files else None
-        except (OSError, ValueError, zipfile.BadZipFile) as e:
-            raise UsageError(f"--data-cache {cache} is not a readable crop cache ({type(e).__name__}: {e}); delete "
-                             "it (it is made again), or give another --data-cache") from None
+            have = read_spec(cache)
+        except CropFileError as e:
+            raise UsageError(f"--data-cache: {e}; delete it (it is made again), or give another "
+                             "--data-cache") from None
         if have is None:
             raise UsageError(f"--data-cache {cache} holds no record of the settings its crops were made with; delete "
                              "it (it is made again), or give another --data-cache")
@@ -135,17 +107,30 @@ def _check_args(args) -> None:
                              "the same options, delete it (it is made again), or give another --data-cache")
 
 
+def _mix(text: str) -> tuple[float, float, float]:
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three numbers separated by commas, got {text!r}") from None
+
+
 def main(argv=None) -> int:
     from tactile_deploy.imaging import learned_readout as lr_mod
 
-    from .data import DEPTH_RANGE_MM, RADII_MM, unit_presses
+    from .crops import Crops, contact_crops, load_crops, save_crops
+    from .data import DEPTH_RANGE_MM, RADII_MM, PressMix, unit_presses
     from .family import Tolerances, family_configs
+    from .fitting import fit_network
 
     ap = argparse.ArgumentParser(prog="python -m training.shading_net", description=__doc__.splitlines()[0])
     ap.add_argument("--design", default="gelslim1",
                     help="virtual sensor whose design the units share (default: %(default)s)")
     ap.add_argument("--units", type=int, default=8, help="virtual units of the design (default: %(default)s)")
     ap.add_argument("--presses", type=int, default=1000, help="presses per unit (default: %(default)s)")
+    ap.add_argument("--mix", type=_mix, default=MIX,
+                    help="shares of balls, library shapes and procedural faces (default: 0.35,0.15,0.5)")
+    ap.add_argument("--crop", type=int, default=CROP_CELLS,
+                    help="side of the training crops, cells (default: %(default)s)")
     ap.add_argument("--epochs", type=int, default=60, help="training epochs (default: %(default)s)")
     ap.add_argument("--width", type=int, default=8, help="base channels of the U-Net (default: %(default)s)")
     ap.add_argument("--seed", type=int, default=5,
@@ -157,7 +142,11 @@ def main(argv=None) -> int:
                     help="weight of the gradient channels in the loss, the depth's is 1 (default: %(default)s)")
     ap.add_argument("--data-cache", type=Path, default=None,
                     help="keep the generated crops in this .npz and reuse them when present (only with the same "
-                    "--design, --units, --presses and --seed; default: none)")
+                    "--design, --units, --presses, --mix, --crop and --seed; default: none)")
+    ap.add_argument("--data-only", action="store_true",
+                    help="write the crops to --data-cache and stop (to train them elsewhere)")
+    ap.add_argument("--weights", type=Path, default=None,
+                    help="export these weights (.pt of python -m training.shading_net.fitting) instead of training")
     ap.add_argument("--out", type=Path, default=Path("exported/gelslim_readout.onnx"),
                     help="ONNX file to write, relative to the current folder (default: %(default)s); its card "
                     "<stem>.json goes beside it")
@@ -172,30 +161,44 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(args.seed)
     tol = Tolerances()
     if args.data_cache is not None and args.data_cache.is_file():
-        with np.load(args.data_cache) as z:
-            x_all, depth_crops, pitch = z["features"], z["depth_mm"], float(z["pitch_mm"])
+        crops = load_crops(args.data_cache)
         print(f"crops from {args.data_cache}", flush=True)
     else:
-        xs, ds, simulator = [], [], None
+        parts, simulator = [], None
+        mix = PressMix(*args.mix)
         for u, config in enumerate(family_configs(args.design, args.units, rng, tol)):
-            presses, simulator = unit_presses(config, args.presses, rng, simulator)
-            x, d = contact_crops(presses.features, presses.depth_mm[:, None], rng)
-            xs.append(x)
-            ds.append(d[:, 0])
-            pitch = presses.pitch_mm
+            presses, simulator = unit_presses(config, args.presses, rng, simulator, mix)
+            parts.append(contact_crops(presses, rng, args.crop))
             print(f"unit {u + 1}/{args.units}: {args.presses} presses "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
-        x_all, depth_crops = np.concatenate(xs), np.concatenate(ds)
+        crops = Crops.concatenate(parts)
         if args.data_cache is not None:
-            from tactile_deploy.atomic import write_npz
-
-            args.data_cache.parent.mkdir(parents=True, exist_ok=True)
-            write_npz(args.data_cache, features=x_all, depth_mm=depth_crops, pitch_mm=pitch,
-                      spec=np.array(json.dumps(_cache_spec(args), sort_keys=True)))
+            save_crops(args.data_cache, crops, _cache_spec(args))
+            print(f"wrote {len(crops)} crops to {args.data_cache} "
+                  f"({args.data_cache.stat().st_size / 2 ** 20:.1f} MiB)", flush=True)
     t_data = time.perf_counter() - t0
-    net, losses = train_network(x_all, targets(depth_crops, pitch, args.gradient_clip), args.width,
-                                args.epochs, args.seed, gradient_weight=args.gradient_weight,
-                                log=lambda m: print(m, flush=True))
+    if args.data_only:
+        return 0
+    if args.weights is not None:
+        from tactile_deploy.learning.readout_network import ReadoutNet
+        from tactile_deploy.safe_torch import load_torch_file
+
+        saved = load_torch_file(args.weights)
+        trained = saved["settings"]
+        net = ReadoutNet(int(trained["width"]))
+        net.load_state_dict(saved["state_dict"])
+        net.eval()
+        losses = list(saved["losses"])
+        train_info = {**trained, "seconds": round(float(saved["seconds"]), 1),
+                      "weights_from": args.weights.name}
+    else:
+        net, losses = fit_network(crops, args.width, args.epochs, args.seed,
+                                  gradient_clip=args.gradient_clip,
+                                  gradient_weight=args.gradient_weight,
+                                  log=lambda m: print(m, flush=True))
+        train_info = {"width": args.width, "epochs": args.epochs, "batch": 32, "lr": 2e-3,
+                      "gradient_clip": args.gradient_clip, "gradient_weight": args.gradient_weight,
+                      "device": "cpu"}
     metadata = {"readout_format": lr_mod.READOUT_FORMAT, "feature_version": lr_mod.FEATURE_VERSION,
                 "colour_scale_grey": repr(lr_mod.COLOUR_SCALE_GREY),
                 "position_scale_mm": repr(lr_mod.POSITION_SCALE_MM), "saturation_level": 254,
@@ -203,6 +206,7 @@ def main(argv=None) -> int:
     export_onnx(net, args.out, metadata)
     import sys
 
+    kinds, counts = np.unique(crops.kinds, return_counts=True)
     card = {
         "model": args.out.name,
         "command": "python -m training.shading_net " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -213,11 +217,13 @@ def main(argv=None) -> int:
         "family": {"units": args.units, "tolerances": asdict(tol),
                    "seed": args.seed},
         "data": {"presses_per_unit": args.presses, "ball_radii_mm": list(RADII_MM),
-                 "library_indenters": "half of the presses: every shape of the indenter library, any rotation",
-                 "depth_range_mm": list(DEPTH_RANGE_MM), "crop_cells": CROP_CELLS},
-        "training": {"width": args.width, "epochs": args.epochs, "batch": 32, "lr": 2e-3,
-                     "gradient_clip": args.gradient_clip, "gradient_weight": args.gradient_weight,
-                     "loss_first": losses[0], "loss_last": losses[-1],
+                 "mix": {"balls": args.mix[0], "library": args.mix[1], "procedural": args.mix[2]},
+                 "presses_by_kind": {str(k): int(c) for k, c in zip(kinds, counts)},
+                 "library_indenters": "every shape of the indenter library, any rotation",
+                 "procedural": "training/shading_net/shapes.py: flats, holed flats and rings, lines, dots, "
+                               "curved parts, edges beyond the view, relief; 0.2-24 mm, any rotation",
+                 "depth_range_mm": list(DEPTH_RANGE_MM), "crop_cells": args.crop},
+        "training": {**train_info, "loss_first": losses[0], "loss_last": losses[-1],
                      "parameters": int(sum(p.numel() for p in net.parameters()))},
         "metadata": {k: str(v) for k, v in metadata.items()},
         "versions": {"torch": torch.__version__, "python": platform.python_version()},
