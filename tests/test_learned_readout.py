@@ -390,3 +390,27 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
 
     saved = load_torch_file(tmp_path / "w.pt")
     assert saved["settings"]["width"] == 4 and len(saved["losses"]) == 2
+
+
+def test_contact_region_errors_in_the_view_count_only_the_cells_the_camera_sees():
+    """A grid covering x in [-5.6, 5.6] mm, y in [-2.8, 2.8] mm: the view mask holds the model
+    cells (pitch 35/128 mm) whose centres lie inside it; an error planted only outside the view
+    counts in the region's RMSE and not in the in-view RMSE."""
+    from calibration.shading.virtual_check import contact_region_errors, view_mask
+
+    view = view_mask(OutputGrid(x_min_mm=-5.6, x_max_mm=5.6, y_min_mm=-2.8, y_max_mm=2.8,
+                                nx=41, ny=21))
+    g = OutputGrid()
+    x = g.x_min_mm + (np.arange(g.nx) + 0.5) * g.pitch_x_mm
+    y = g.y_max_mm - (np.arange(g.ny) + 0.5) * g.pitch_y_mm
+    assert view.shape == (128, 128)
+    assert view.sum() == (np.abs(x) < 5.6).sum() * (np.abs(y) < 2.8).sum() == 40 * 20
+    truth = np.zeros((1, 128, 128), np.float32)
+    truth[0, 54:74, 40:88] = 0.2                      # a bar reaching past the view along x
+    est = truth.copy()
+    first_column = int(np.argmax(view.any(0)))
+    est[0, :, :first_column] += 0.05                 # 50 um off left of the view only
+    e = contact_region_errors(est, truth, view=view)
+    assert e["region_in_view"][0] == pytest.approx(0.0, abs=1e-3)
+    assert e["region"][0] > 10.0
+    assert "region_in_view" not in contact_region_errors(est, truth)

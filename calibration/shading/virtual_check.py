@@ -176,17 +176,37 @@ def virtual_shape_presses(sensor, grid, indenters, n: int = 16, seed: int = 99,
     return ShapePresses(np.stack(frames), np.stack(truths), np.array(used))
 
 
+def view_mask(grid) -> np.ndarray:
+    """(128, 128) bool: the model-grid cells whose centres the camera's imaging ``grid`` covers
+    (where a read-out can see the surface at all)."""
+    from tactile_deploy.imaging.camera_mapping import OutputGrid
+
+    g = OutputGrid()
+    x = g.x_min_mm + (np.arange(g.nx) + 0.5) * g.pitch_x_mm
+    y = g.y_max_mm - (np.arange(g.ny) + 0.5) * g.pitch_y_mm
+    return ((x[None, :] > grid.x_min_mm) & (x[None, :] < grid.x_max_mm)
+            & (y[:, None] > grid.y_min_mm) & (y[:, None] < grid.y_max_mm))
+
+
 def contact_region_errors(depths_mm, truths_mm, threshold_mm: float = 0.01,
-                          grow_cells: int = 4) -> dict:
+                          grow_cells: int = 4, view=None) -> dict:
     """Per-press errors (um) of depth maps (N, 128, 128) mm against true ones where the true
     depth exceeds ``threshold_mm``, grown by ``grow_cells`` cells (the contact and its rim):
-    ``region`` RMSE, ``whole`` RMSE and ``peak`` (estimated minus true maximum), each (N,)."""
+    ``region`` RMSE, ``whole`` RMSE and ``peak`` (estimated minus true maximum), each (N,);
+    with ``view`` (:func:`view_mask`) also ``region_in_view``, the region's RMSE over the cells
+    the camera sees (a contact reaching past the view is unknown there to any read-out)."""
     from scipy import ndimage
 
-    region, whole, peak = [], [], []
+    region, in_view, whole, peak = [], [], [], []
     for d, t in zip(depths_mm, truths_mm):
         m = ndimage.binary_dilation(t > threshold_mm, iterations=grow_cells)
         region.append(np.sqrt(np.mean((d[m] - t[m]) ** 2)) * 1e3 if m.any() else np.nan)
+        if view is not None:
+            mv = m & view
+            in_view.append(np.sqrt(np.mean((d[mv] - t[mv]) ** 2)) * 1e3 if mv.any() else np.nan)
         whole.append(np.sqrt(np.mean((d - t) ** 2)) * 1e3)
         peak.append((float(d.max()) - float(t.max())) * 1e3)
-    return {"region": np.array(region), "whole": np.array(whole), "peak": np.array(peak)}
+    out = {"region": np.array(region), "whole": np.array(whole), "peak": np.array(peak)}
+    if view is not None:
+        out["region_in_view"] = np.array(in_view)
+    return out

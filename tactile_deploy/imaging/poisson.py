@@ -143,7 +143,13 @@ class PoissonSolver:
             return self.solve_divergence(edge_divergence(d_col, d_row, self.weights))
         gc = _as_grid("d_col", d_col, self.image_shape)
         gr = _as_grid("d_row", d_row, self.image_shape)
-        z = self.solve_divergence(edge_divergence(np.pad(gc, m), np.pad(gr, m), self.weights))
+        # the margin's targets are zero: its divergence is zero but for the ring of pixels
+        # touching the image, so it is computed on the image grown by one pixel only
+        h, w = self.image_shape
+        div = np.zeros(self.shape, np.float32)
+        div[m - 1:m + h + 1, m - 1:m + w + 1] = edge_divergence(np.pad(gc, 1), np.pad(gr, 1),
+                                                                 self.weights)
+        z = self.solve_divergence(div)
         return z[m:-m, m:-m]
 
 
