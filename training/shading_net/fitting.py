@@ -1,7 +1,7 @@
 """Fit the read-out network to training crops (torch; CPU or a CUDA device).
 
     python -m training.shading_net.fitting --crops CROPS.npz --weights-out W.pt [--epochs 60]
-        [--width 8] [--seed 5] [--batch 32] [--lr 2e-3] [--device cuda]
+        [--width 8] [--seed 5] [--batch 32] [--lr 2e-3] [--device cuda] [--init W0.pt]
 
 needs only numpy and torch (no OpenCV or pydantic), so a crop file made by
 ``python -m training.shading_net --data-only`` can be trained on a GPU machine; the weights
@@ -82,18 +82,31 @@ def main(argv=None) -> int:
     ap.add_argument("--gradient-clip", type=float, default=1.0)
     ap.add_argument("--gradient-weight", type=float, default=1.0)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="start from these weights (a .pt written by this command, same --width)")
     args = ap.parse_args(argv)
+    init_state, init_settings = None, None
+    if args.init is not None:
+        from tactile_deploy.safe_torch import load_torch_file
+
+        saved = load_torch_file(args.init)
+        init_state, init_settings = saved["state_dict"], saved["settings"]
+        if int(init_settings["width"]) != args.width:
+            raise SystemExit(f"--init {args.init} has width {init_settings['width']}, "
+                             f"not --width {args.width}")
     t0 = time.perf_counter()
     crops = load_crops(args.crops)
     print(f"{len(crops)} crops of {crops.frames.shape[1]} x {crops.frames.shape[2]} cells "
           f"({time.perf_counter() - t0:.0f} s)", flush=True)
     net, losses = fit_network(crops, args.width, args.epochs, args.seed, args.batch, args.lr,
                               args.gradient_clip, args.gradient_weight, args.device,
-                              log=lambda m: print(m, flush=True))
+                              init_state=init_state, log=lambda m: print(m, flush=True))
     settings = {k: getattr(args, k) for k in ("epochs", "width", "seed", "batch", "lr",
                                                "gradient_clip", "gradient_weight", "device")}
     settings["device_name"] = (torch.cuda.get_device_name() if args.device.startswith("cuda")
                                else "cpu")
+    if init_settings is not None:   # the epochs the weights saw before, and how
+        settings["init"] = {"weights": args.init.name, **init_settings}
     torch.save({"state_dict": net.state_dict(), "settings": settings, "losses": losses,
                 "crops": str(args.crops.name), "seconds": time.perf_counter() - t0},
                args.weights_out)
