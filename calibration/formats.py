@@ -1,10 +1,5 @@
-"""The file formats of :mod:`calibration`, each with the path of its committed JSON Schema.
-
-    python -m calibration.formats [--check]     rewrite (or check) the schemas
-
-Models are on :class:`tactile_deploy.fileformat.StrictModel`; a test fails when a committed
-schema differs from its model's (``tests/test_formats.py``).
-"""
+"""The file formats of :mod:`calibration` and their committed JSON Schemas (``python -m calibration.formats``
+rewrites them; see :mod:`tactile_deploy.fileformat`)."""
 
 from __future__ import annotations
 

@@ -17,6 +17,7 @@ from tactile_deploy.imaging.shading import ShadingHeader
 from tactile_deploy.pad.asset import PadCard
 from tactile_deploy.runtime.plugins.manifest import PluginManifest
 from tactile_deploy.runtime.plugins.versions import AdaptationHistory
+from tactile_deploy.runtime.run_record import RunRecord
 from tactile_deploy.sensors.config import SCHEMA_PATH as VIRTUAL_SENSOR_SCHEMA
 from tactile_deploy.sensors.config import VirtualSensorConfig
 from tactile_deploy.simulation.dataset import DatasetCard
@@ -38,6 +39,7 @@ FORMATS = {f.name: f for f in (
     Format("virtual sensor config", VirtualSensorConfig, VIRTUAL_SENSOR_SCHEMA),
     Format("pad asset card (pads/NAME_vN.json)", PadCard,
            _HERE / "pad" / "pad_card.schema.json"),
+    Format("run summary (run.json)", RunRecord, _HERE / "runtime" / "run_record.schema.json"),
     Format("dataset card (dataset.json)", DatasetCard,
            _HERE / "simulation" / "dataset_card.schema.json"),
 )}
