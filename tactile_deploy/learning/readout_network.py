@@ -88,8 +88,10 @@ def export_onnx(net, out: Path, metadata: dict) -> None:
     atomically, with ``metadata`` as ONNX metadata properties."""
     import onnx
 
+    from tactile_deploy.onnx_runtime.metadata import set_metadata
+
     graph = ExportedReadout(net).eval()
-    example = torch.zeros(1, 11, 64, 90)
+    example = torch.zeros(1, N_FEATURES, 64, 90)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         torch.onnx.export(graph, example, str(tmp), input_names=["features"],
@@ -99,7 +101,5 @@ def export_onnx(net, out: Path, metadata: dict) -> None:
                                         "gradients": {0: "batch", 2: "rows", 3: "columns"}},
                           dynamo=False)
         model = onnx.load(str(tmp))
-        for key, value in metadata.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = key, str(value)
+        set_metadata(model, metadata)
         onnx.save(model, str(tmp))
