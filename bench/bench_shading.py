@@ -93,7 +93,7 @@ def field_plans(presses, comp) -> dict:
 
 
 def field_markdown(presses, plans: dict) -> str:
-    """Tables of the whole field: each hold-out plan by place, and every corner and edge press."""
+    """Tables of the whole field: each hold-out plan by place, and every press (corners first)."""
     from calibration.shading.field import CORNER_RADII, EDGE_RADII, plan_summary, press_places
 
     places = dict(zip(presses.names, press_places(presses.circles, presses.shape)))
@@ -119,19 +119,38 @@ def field_markdown(presses, plans: dict) -> str:
         lines.append(f"| {name} ({res.calibration_presses}) | {s['shape_mean_um']:.1f} / "
                      f"{s['shape_worst_um']:.1f} | {100 * s['radius_worst']:.1f} % | "
                      + " | ".join(cells) + f" | {', '.join(s['misses']) or 'none'} |")
-    edge_names = [n for n in presses.names if places[n] != "inside"]
-    lines += ["", "Corner and edge presses, held out: shape error (um) / fitted radius error per plan.",
+    # every press as each plan holds it out: corner presses first, then edge, then inside
+    order = sorted(presses.names, key=lambda n: (("corner", "edge", "inside").index(places[n]), n))
+    lines += ["", ("Every press, held out: shape error (um) / fitted radius error per plan (a press "
+                   "missing a target in bold)."),
               "", "| press | place | labelled circle (col, row, radius px) | "
               + " | ".join(plans) + " |", "|---|---|---|" + "---:|" * len(plans)]
-    for n in edge_names:
+    for n in order:
         c = presses.circles[presses.names.index(n)]
         row = []
         for res in plans.values():
             r = next((r for r in res.results if r.name == n), None)
-            row.append("" if r is None else f"{r.shape_um:.1f} / {100 * r.radius_error:+.1f} %")
-        lines.append(f"| {n} | {places[n]} | ({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) | "
+            if r is None:
+                row.append("")
+                continue
+            cell = f"{r.shape_um:.1f} / {100 * r.radius_error:+.1f} %"
+            row.append(f"**{cell}**" if r.shape_um > 40.0 or abs(r.radius_error) > 0.05 else cell)
+        label = f"**{places[n]}**" if places[n] == "corner" else places[n]
+        lines.append(f"| {n} | {label} | ({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) | "
                      + " | ".join(row) + " |")
+    for name, res in plans.items():
+        s = plan_summary(res, places)
+        lines += ["", (f"Target per press (shape <= 40 um, fitted radius within 5 %), {name}: "
+                       + ("met on every press" if not s["misses"] else
+                          f"**not met** by {', '.join(s['misses'])}")
+                       + f"; corner presses {_corner_verdict(res, places)}.")]
     return "\n".join(lines)
+
+
+def _corner_verdict(res, places: dict) -> str:
+    """The corner presses' shape error and fitted radius error of one plan, in words."""
+    return ", ".join(f"{r.name} {r.shape_um:.1f} um / {100 * r.radius_error:+.1f} %"
+                     for r in res.results if places[r.name] == "corner") or "none held out"
 
 
 def speed(presses, n: int = 50) -> dict[str, tuple[float, float]]:
