@@ -390,6 +390,45 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
 
     saved = load_torch_file(tmp_path / "w.pt")
     assert saved["settings"]["width"] == 4 and len(saved["losses"]) == 2
+    # continued from those weights (a step too small to move them): it starts where they ended,
+    # and says so
+    from training.shading_net.fitting import main as fit_main
+
+    assert fit_main(["--crops", str(tmp_path / "c.npz"), "--weights-out", str(tmp_path / "w2.pt"),
+                     "--epochs", "1", "--width", "4", "--device", "cpu", "--lr", "1e-12",
+                     "--init", str(tmp_path / "w.pt")]) == 0
+    cont = load_torch_file(tmp_path / "w2.pt")
+    assert cont["settings"]["init"]["weights"] == "w.pt" and cont["settings"]["init"]["epochs"] == 2
+    learned = [k for k in saved["state_dict"] if not k.endswith(("running_mean", "running_var",
+                                                                  "num_batches_tracked"))]
+    assert learned
+    for k in learned:
+        np.testing.assert_allclose(cont["state_dict"][k].numpy(), saved["state_dict"][k].numpy(),
+                                   atol=1e-6, err_msg=k)
+    with pytest.raises(SystemExit, match="width 4, not --width 8"):
+        fit_main(["--crops", str(tmp_path / "c.npz"), "--weights-out", str(tmp_path / "w3.pt"),
+                  "--width", "8", "--device", "cpu", "--init", str(tmp_path / "w.pt")])
+
+
+def test_validation_command_compares_networks_on_an_unseen_unit(tmp_path, capsys):
+    """``python -m training.shading_net.validate``: presses of another unit, each network's
+    contact-region error per kind; the same network twice gives the same figures, and the
+    presses kept in --cache give them again. The error is an RMSE over the contact and its rim."""
+    from training.shading_net.validate import main, region_rmse_um
+
+    truth = np.zeros((20, 20), np.float32)
+    truth[8:12, 8:12] = 0.2
+    off = truth + np.float32(0.03)                # 30 um everywhere
+    assert region_rmse_um(off, truth) == pytest.approx(30.0, rel=1e-4)
+    assert region_rmse_um(truth, truth) == 0.0
+    cache = tmp_path / "presses.npz"
+    args = [str(SHIPPED), str(SHIPPED), "--presses", "4", "--seed", "3", "--cache", str(cache)]
+    assert main(args) == 0
+    first = capsys.readouterr().out.strip().splitlines()
+    assert len(first) == 2 and first[0] == first[1] and "um mean" in first[0]
+    assert cache.is_file()
+    assert main(args) == 0
+    assert capsys.readouterr().out.strip().splitlines() == first
 
 
 def test_contact_region_errors_in_the_view_count_only_the_cells_the_camera_sees():
