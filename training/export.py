@@ -42,8 +42,13 @@ from torch import nn
 
 from training.errors import UsageError
 from training.networks.predictor import Predictor
+from training.networks.surface_decoder import add_anchor
 
-VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood")
+VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood",
+            "surface", "surface-fastood", "surface-int8", "surface-int8-fastood")
+#: Variants of the latent decoders (every bundle has them) and of the surface-anchored decoder.
+LATENT_VARIANTS = VARIANTS[:7]
+SURFACE_VARIANTS = VARIANTS[7:]
 #: The variant written to the shipped file (best accuracy/speed pair, see bench/bench_predictor.py).
 SHIPPED_VARIANT = "lean-int8-fastood"
 OPSET = 18
@@ -143,6 +148,50 @@ class DeployGraph(nn.Module):
         return self.rest + d, d, ood
 
 
+class SurfaceDeployGraph(nn.Module):
+    """The surface-anchored path as one graph: depth (N, 1, R, R) mm -> (vertices, displacement
+    (N, n, 3) mm, ood_score (N,) mm) (:mod:`training.networks.surface_decoder`).
+
+    Folded: 1 / depth_scale into the first convolution, the displacement scale into the decoder's
+    1 x 1 head (channel 3 * layer + axis), depth_scale into the image decoder's last layer. The
+    anchor reads the depth map in mm (one Gather of 4 pixels per sensing node).
+    """
+
+    def __init__(self, model: Predictor, ood: str = "lean"):
+        super().__init__()
+        enc = copy.deepcopy(model.image_vae.encoder)
+        img_dec = copy.deepcopy(model.ood_decoder if ood == "lean" else model.image_vae.decoder)
+        s = model.norm.depth_scale_mm.detach()
+        dec = copy.deepcopy(model.surface_decoder)
+        # head channel s * (3 * free layers) + 3 * layer + axis carries axis `axis`
+        scale = model.norm.displacement_scale_mm.detach().repeat(dec.n_free_layers * dec.sub**2)
+        with torch.no_grad():
+            enc.convs[0].weight.div_(s)
+            last = img_dec.deconvs[-1]
+            last.weight.mul_(s)
+            last.bias.mul_(s)
+            dec.head.weight.mul_(scale[:, None])
+            dec.head.bias.mul_(scale)
+        self.convs, self.fc, self.mu = enc.convs, enc.fc, enc.mu
+        self.image_decoder = rewrite_transposed_convs(img_dec)
+        self.decoder = dec
+        self.anchor = copy.deepcopy(model.anchor)
+        self.register_buffer("rest", model.norm.rest_vertices_mm.clone())
+
+    def forward(self, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        maps = []
+        h = depth
+        for layer in self.convs:
+            h = layer(h)
+            if not isinstance(layer, nn.Conv2d):
+                maps.append(h)
+        z_image = self.mu(self.fc(h))
+        d = add_anchor(self.decoder(maps, z_image), self.anchor(depth))
+        recon = self.image_decoder(z_image)
+        ood = torch.sqrt(torch.mean((recon - depth) ** 2, dim=(1, 2, 3)))
+        return self.rest + d, d, ood
+
+
 def variant_parts(variant: str) -> tuple[str, bool, str]:
     """(base "naive" | "fused" | "lean", int8?, ood decoder "vae" | "lean") of a variant name."""
     if variant not in VARIANTS:
@@ -157,10 +206,15 @@ def fp32_twin(variant: str) -> str:
     return base + ("-fastood" if ood == "lean" else "")
 
 
-def deploy_module(model: Predictor, variant: str) -> DeployGraph:
+def deploy_module(model: Predictor, variant: str) -> nn.Module:
     """The fp32 torch module exported for ``variant`` (int8 variants start from their fp32 base)."""
     base, _, ood = variant_parts(variant)
     model = model.eval()
+    if base == "surface":
+        if not hasattr(model, "surface_decoder"):
+            raise UsageError(f"variant {variant!r} needs a model with the surface decoder (model.surface in its "
+                             f"config); this one has the latent decoders only: choose one of {', '.join(LATENT_VARIANTS)}")
+        return SurfaceDeployGraph(model, ood).eval()
     scale_mask = (model.norm.displacement_scale_mm * model.norm.free_mask).detach().clone()
     if base == "naive":
         dec = copy.deepcopy(model.mesh_vae.decoder)
@@ -319,7 +373,8 @@ def export_variant(
 def torch_reference(model: Predictor, variant: str, depth_mm: np.ndarray, batch: int = 32):
     """(displacement (K, n, 3) mm, ood_score (K,) mm) of the eager fp32 torch model of ``variant``
     (``variant`` may also be a decoder family, "coma" or "lean", with the VAE's ood_score)."""
-    model.deploy_decoder = "lean" if variant.startswith("lean") else "coma"
+    before = model.deploy_decoder
+    model.deploy_decoder = variant.split("-")[0] if variant.startswith(("lean", "surface")) else "coma"
     ood = variant_parts(variant)[2] if variant in VARIANTS else "vae"
     disp, oods = [], []
     try:
@@ -328,7 +383,7 @@ def torch_reference(model: Predictor, variant: str, depth_mm: np.ndarray, batch:
             disp.append(model(x)[1].numpy())
             oods.append(model.image_reconstruction_rmse(x, ood).numpy())
     finally:
-        model.deploy_decoder = "coma"
+        model.deploy_decoder = before
     return np.concatenate(disp), np.concatenate(oods)
 
 
@@ -381,13 +436,15 @@ def heldout_seed(held) -> int | None:
 
 def export_run(
     run_dir: str | Path, out: str | Path, variant: str | None = None, n_parity: int = 128, optimize: bool = True,
-    overwrite: bool = False,
+    overwrite: bool = False, bundle_path: str | Path | None = None,
 ) -> dict:
     """Export a trained run: the shipped graph ``out``, the fp32 graph of the same weights
     (``<stem>_fp32.onnx``, when the shipped one is int8) and the model card (``<stem>.json``,
     ``<stem>.md``). Returns the card.
 
-    Existing files of the set are replaced only with ``overwrite``. Everything is written to
+    ``bundle_path``: the weights to export (default ``run_dir/model.pt``; e.g. its slim bundle, so
+    that the committed bundle and graph agree). Existing files of the set are replaced only with
+    ``overwrite``. Everything is written to
     temporary names beside ``out`` and renamed into place at the end: an interrupted export
     leaves the previous set as it was."""
     import os
@@ -399,10 +456,11 @@ def export_run(
     variant = variant or SHIPPED_VARIANT
     check_export(run_dir, out, variant, overwrite)
     _, is_int8, ood = variant_parts(variant)
-    model, bundle = load_bundle(run_dir / "model.pt")
+    model, bundle = load_bundle(Path(bundle_path) if bundle_path is not None else run_dir / "model.pt")
     with np.load(run_dir / "heldout.npz") as held:
         depth = held["depth_mm"][:, None].astype(np.float32)
         true = held["displacement_mm"]
+        contact = held["contact_mask"] if "contact_mask" in held.files else None
         held_seed = heldout_seed(held)
     t0 = time.perf_counter()
     calibration, calibration_info = None, None
@@ -437,12 +495,17 @@ def export_run(
             parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final_disp[:k] - fp32_disp) ** 2)))
             parity["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(final_ood[:k] - fp32_ood).max())
         err = (final_disp - true).astype(np.float64)
+        from training.evaluation import physics_lift
+        from training.metrics import mesh_metrics
+
         accuracy = {
             "n_samples": int(len(depth)),
             "vertex_rmse_mm": float(np.sqrt(np.mean(err**2))),
             "relative_error": float(np.linalg.norm(err) / np.linalg.norm(true)),
             "max_error_mm": float(np.linalg.norm(err, axis=-1).max()),
             "ood_score_p99_mm": float(np.quantile(final_ood, 0.99)),
+            "metrics": mesh_metrics(final_disp, true, contact, model.n_plane),
+            "physics_lift": mesh_metrics(physics_lift(depth[:, 0]), true, contact, model.n_plane),
         }
         ood_threshold = float(bundle["metrics"]["ood_lean" if ood == "lean" else "ood"]["recon_rmse_mm_p99"])
 
