@@ -48,7 +48,15 @@ RESUME_FREE = ("run_dir", "device", "threads", "eval_max_samples", "data.cache_f
 
 
 def git_commit(repo: Path | None = None) -> dict:
-    """{'commit': sha or 'unknown', 'dirty': bool} of the repository holding this package."""
+    """{'commit': sha or 'unknown', 'dirty': bool} of the repository holding this package; a copy
+    of the tree without its git history (a GPU machine's) names its commit in the environment
+    variable TRAINING_SOURCE_COMMIT (sha, with a "+dirty" suffix when the copy had changes)."""
+    import os
+
+    given = os.environ.get("TRAINING_SOURCE_COMMIT")
+    if given:
+        sha, _, flag = given.partition("+")
+        return {"commit": sha, "dirty": flag == "dirty", "recorded": "TRAINING_SOURCE_COMMIT"}
     repo = repo or Path(__file__).resolve().parents[1]
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
