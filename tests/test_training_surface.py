@@ -32,6 +32,27 @@ def test_anchor_is_the_bilinear_read_of_the_depth_map(pad):
                                np.clip(xy[:, 0], c[0], c[-1]), atol=1e-5)
 
 
+def test_moved_anchor_reads_where_the_nodes_moved_and_is_differentiable(pad):
+    """The read at rest + a lateral displacement against scipy at the displaced points; its
+    gradient in the displacement against finite differences (float64)."""
+    from tactile_deploy.fem.surface_to_volume import sample_depth_at
+    from training.networks.surface_decoder import SurfaceAnchor
+
+    xy = pad.vertices[pad.sensing_nodes, :2]
+    anchor = SurfaceAnchor(xy, 128, 17.5)
+    rng = np.random.default_rng(4)
+    maps = rng.random((2, 1, 128, 128)).astype(np.float32)
+    dxy = rng.normal(0.0, 0.3, (2, len(xy), 2)).astype(np.float32)  # up to ~1 mm: across pixels and the rim
+    got = anchor.moved(torch.as_tensor(maps), torch.as_tensor(dxy)).numpy()
+    ref = np.stack([-sample_depth_at(maps[i, 0], xy + dxy[i]) for i in range(2)])
+    assert np.abs(got - ref).max() < 2e-5  # float32 pixel coordinates
+    smooth = torch.as_tensor(maps[:1], dtype=torch.float64)
+    q = torch.as_tensor(dxy[:1, :40], dtype=torch.float64).requires_grad_()
+    pad_rest = torch.zeros(1, len(xy) - 40, 2, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda d: anchor.moved(smooth, torch.cat([d, pad_rest], 1))[:, :40], (q,),
+                                    eps=1e-6, atol=1e-4)
+
+
 def test_surface_decoder_reads_the_pixel_under_each_node(pad):
     """A head that writes each output pixel's own (row, column) into the first two values: every
     node of every free layer reads the 64 x 64 pixel that holds its in-plane point (computed here
@@ -120,13 +141,14 @@ def surface_run(tmp_path_factory, pad):
         "run_dir": str(tmp / "run"), "threads": 2,
         "model": {"image": {"widths": [4, 8, 8, 16, 16], "hidden": 16, "latent": 16},
                   "ood_decoder": {"channels": [4, 4, 4, 4, 4]},
-                  "surface": {"channels": [8, 8, 8, 8], "conv3x3_at": [8]}},
+                  "surface": {"channels": [8, 8, 8, 8], "conv3x3_at": [8], "anchor": "moved"}},
         "data": {"synthetic": {
             "n_samples": 32, "seed": 5, "indenters": ["sphere_r4", "cube_corner"], "radius_max_mm": 3.0,
             "depth_min_mm": 0.3, "depth_max_mm": 1.0, "contact_radius_mm": 7.5, "formulation": "standard",
             "friction": ["frictionless", "stick"]}},
         "image_vae": None, "mesh_vae": None, "lean_decoder": None, "projection": None, "finetune": None,
-        "surface": {**stage, "image_weight": 1.0}, "ood_decoder": stage,
+        "surface": {**stage, "image_weight": 1.0, "train_ood_decoder": True, "contact_weight": 30.0},
+        "ood_decoder": stage,
     })
     metrics = train(cfg, log=lambda line: None)
     return tmp / "run", metrics
@@ -159,7 +181,7 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
     assert acc["physics_lift"]["contact_patch_rmse_um"] > 0
 
     # the graph, run here, against the slim bundle's eager model; the anchor is in the graph: the
-    # sensing layer's z is the bilinear read of the depth map plus the eager residual
+    # sensing layer's z is the depth map read where the residual moved each node, plus the residual
     model, _ = load_bundle(slim)
     depth = held["depth_mm"][:4, None].astype(np.float32)
     _, d, _ = run_session(make_session(out), depth, batch=4)
@@ -169,7 +191,8 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
         residual = model.norm.denormalise_displacement(model.surface_decoder(maps, z)).numpy()
     from tactile_deploy.fem.surface_to_volume import sample_depth_at
 
-    uz = np.stack([-sample_depth_at(m[0], pad.vertices[:pad.n_plane, :2]) for m in depth])
+    rest_xy = pad.vertices[:pad.n_plane, :2]
+    uz = np.stack([-sample_depth_at(m[0], rest_xy + r[:pad.n_plane, :2]) for m, r in zip(depth, residual)])
     np.testing.assert_allclose(d[:, :pad.n_plane, 2], residual[:, :pad.n_plane, 2] + uz, atol=1e-4)
     np.testing.assert_allclose(d[:, pad.n_plane:], residual[:, pad.n_plane:], atol=1e-4)
     assert np.all(d[:, pad.backplate_nodes] == 0.0)

@@ -101,6 +101,10 @@ class SurfaceDecoderConfig(_Strict):
     )
     conv3x3_at: tuple[int, ...] = Field((8, 16), description="Grid sides (4, 8, ...) that get a 3 x 3 convolution.")
     latent_start: bool = Field(True, description="Add an FC of the image latent to the 4 x 4 start (global context).")
+    anchor: Literal["rest", "moved"] = Field(
+        "rest", description="Where a sensing node reads the depth map: at its rest (x, y), or where the decoder "
+        "moves it (rest + predicted lateral displacement: the depth map shows the surface where it has moved to).",
+    )
     half_extent_mm: float = Field(17.5, gt=0, description="The depth map spans +-this in x and y, mm.")
 
 
@@ -194,6 +198,10 @@ class SurfaceStageConfig(StageConfig):
         0.1, ge=0, description="Weight of the image VAE loss (its decoder trains too; 0 with train_encoder false)."
     )
     train_encoder: bool = Field(True, description="Train the image encoder with the decoder (else frozen).")
+    train_ood_decoder: bool = Field(
+        False, description="Train the lean image decoder (the deployed ood_score) in this stage too, on the "
+        "reconstruction from the latent mean, with the image VAE's weight (the ood_decoder stage then fine-tunes it).",
+    )
 
 
 class AugmentationConfig(_Strict):

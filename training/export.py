@@ -176,6 +176,7 @@ class SurfaceDeployGraph(nn.Module):
         self.image_decoder = rewrite_transposed_convs(img_dec)
         self.decoder = dec
         self.anchor = copy.deepcopy(model.anchor)
+        self.moved = model.cfg.surface.anchor == "moved"
         self.register_buffer("rest", model.norm.rest_vertices_mm.clone())
 
     def forward(self, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -186,7 +187,8 @@ class SurfaceDeployGraph(nn.Module):
             if not isinstance(layer, nn.Conv2d):
                 maps.append(h)
         z_image = self.mu(self.fc(h))
-        d = add_anchor(self.decoder(maps, z_image), self.anchor(depth))
+        d = self.decoder(maps, z_image)  # mm (scale folded into the head)
+        d = add_anchor(d, self.anchor.read(depth, d, self.moved))
         recon = self.image_decoder(z_image)
         ood = torch.sqrt(torch.mean((recon - depth) ** 2, dim=(1, 2, 3)))
         return self.rest + d, d, ood

@@ -97,14 +97,16 @@ class SurfaceTrainer(torch.nn.Module):
     normalised depth (B, 1, R, R) -> (normalised displacement (B, n, 3), image VAE reconstruction,
     mu, logvar). The anchor reads the depth in mm (``x * depth_scale``)."""
 
-    def __init__(self, model: Predictor):
+    def __init__(self, model: Predictor, ood: bool = False):
         super().__init__()
+        self.ood_decoder = model.ood_decoder if ood else None
         self.encoder = model.image_vae.encoder
         self.surface_decoder = model.surface_decoder
         self.image_decoder = model.image_vae.decoder
         self.anchor = model.anchor  # buffers only
         self.register_buffer("depth_scale_mm", model.norm.depth_scale_mm.detach().clone(), persistent=False)
-        self.register_buffer("z_scale_mm", model.norm.displacement_scale_mm[2].detach().clone(), persistent=False)
+        self.register_buffer("scale_mm", model.norm.displacement_scale_mm.detach().clone(), persistent=False)
+        self.moved = model.cfg.surface.anchor == "moved"
 
     def forward(self, x: torch.Tensor, sample: bool):
         from training.networks.surface_decoder import add_anchor
@@ -112,9 +114,12 @@ class SurfaceTrainer(torch.nn.Module):
         maps, _ = self.encoder.feature_maps(x)
         h = self.encoder.fc(maps[-1])
         mu, logvar = self.encoder.mu(h), self.encoder.logvar(h)
-        pred = add_anchor(self.surface_decoder(maps, mu), self.anchor(x * self.depth_scale_mm) / self.z_scale_mm)
+        residual = self.surface_decoder(maps, mu)
+        uz = self.anchor.read(x * self.depth_scale_mm, residual * self.scale_mm, self.moved)
+        pred = add_anchor(residual, uz / self.scale_mm[2])
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
-        return pred, self.image_decoder(z), mu, logvar
+        lean = self.ood_decoder(mu) if self.ood_decoder is not None else None
+        return pred, self.image_decoder(z), mu, logvar, lean
 
 
 def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented: Callable | None = None):
@@ -127,7 +132,7 @@ def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented:
     def step(m, idx, train):
         t = sets[train]
         x = t.depth[idx]
-        pred, recon, mu, logvar = m(augmented(x) if train and augmented is not None else x, train)
+        pred, recon, mu, logvar, lean = m(augmented(x) if train and augmented is not None else x, train)
         err2 = ((pred - t.disp[idx]) ** 2 * mask).sum(-1)  # (B, n)
         w = torch.ones_like(err2)
         w[:, :n_plane] += stage.surface_weight
@@ -143,6 +148,10 @@ def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented:
             image_loss, image_terms = vae_loss(x, recon, mu, logvar, stage.kl_weight)
             loss = loss + stage.image_weight * image_loss
             metrics["image_mse"] = image_terms["mse"]
+            if lean is not None:
+                lean_mse = torch.mean((lean - x) ** 2)
+                loss = loss + stage.image_weight * lean_mse
+                metrics["ood_image_mse"] = lean_mse.detach()
         metrics["loss"] = loss.detach()
         return loss, metrics
 
@@ -480,7 +489,7 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     if cfg.surface is not None:
         if tr.contact is None and cfg.surface.contact_weight > 0:
             log("[surface] the data carry no contact masks: contact_weight is not applied")
-        trainer = SurfaceTrainer(model)
+        trainer = SurfaceTrainer(model, ood=cfg.surface.train_ood_decoder and cfg.surface.image_weight > 0)
         if not cfg.surface.train_encoder:
             for p in model.image_vae.encoder.parameters():
                 p.requires_grad_(False)

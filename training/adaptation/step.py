@@ -55,6 +55,7 @@ class AdaptationStep(nn.Module):
         if decoder == "surface":
             self.decoder = copy.deepcopy(model.surface_decoder)
             self.anchor = copy.deepcopy(model.anchor)
+            self.moved = model.cfg.surface.anchor == "moved"
             self.prefixes = SURFACE_TRAINABLE_PREFIXES
         else:
             self.projection = copy.deepcopy(model.projection)
@@ -91,7 +92,8 @@ class AdaptationStep(nn.Module):
             if not isinstance(layer, nn.Conv2d):
                 maps.append(x)
         z = self.mu(self.fc(x))
-        return add_anchor(self.decoder(maps, z) * self.displacement_scale_mm, self.anchor(depth_mm))
+        d = self.decoder(maps, z) * self.displacement_scale_mm
+        return add_anchor(d, self.anchor.read(depth_mm, d, self.moved))
 
     def forward(self, depth_mm: torch.Tensor, target_mm: torch.Tensor, weight: torch.Tensor):
         """(loss () mm^2, per-map mse (B,) mm^2, rendered (B, R, R) mm, displacement (B, n, 3)

@@ -126,7 +126,9 @@ class Predictor(nn.Module):
             maps, z = self.image_vae.encoder.feature_maps(self.normalise_depth(depth_mm))
         from training.networks.surface_decoder import add_anchor
 
-        return add_anchor(self.surface_decoder(maps, z), self.anchor(depth_mm) / self.norm.displacement_scale_mm[2])
+        residual = self.surface_decoder(maps, z)
+        uz = self.anchor.read(depth_mm, residual * self.norm.displacement_scale_mm, self.cfg.surface.anchor == "moved")
+        return add_anchor(residual, uz / self.norm.displacement_scale_mm[2])
 
     def forward(self, depth_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """depth (N, 1, R, R) mm -> (vertices (N, n, 3) mm, displacement (N, n, 3) mm)."""

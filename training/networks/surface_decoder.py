@@ -99,15 +99,44 @@ class SurfaceAnchor(nn.Module):
         w = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1).astype(np.float32)
         self.m = len(xy)
         self.resolution = int(resolution)
+        self.pitch_mm = p
         self.register_buffer("base", torch.as_tensor((r0 * resolution + c0).astype(np.int64)), persistent=False)
         self.register_buffer("weights", torch.as_tensor(w), persistent=False)
+        # continuous pixel coordinates of the rest positions (unclamped), for reads where nodes moved
+        self.register_buffer("col_rest", torch.as_tensor((xy[:, 0] + half_extent_mm) / p - 0.5, dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("row_rest", torch.as_tensor((half_extent_mm - xy[:, 1]) / p - 0.5, dtype=torch.float32),
+                             persistent=False)
 
-    def forward(self, depth_mm: torch.Tensor) -> torch.Tensor:
+    def _taps(self, depth_mm: torch.Tensor) -> torch.Tensor:
+        """(B, R * R, 4): pixel k and its neighbours right, below, below-right (0 past the end)."""
         r = self.resolution
         flat = torch.nn.functional.pad(depth_mm.reshape(depth_mm.shape[0], r * r), (0, r + 1))
-        taps = torch.stack([flat[:, : r * r], flat[:, 1: r * r + 1], flat[:, r: r * r + r], flat[:, r + 1: r * r + r + 1]], 2)
-        v = torch.index_select(taps, 1, self.base)  # (B, m, 4)
+        return torch.stack([flat[:, : r * r], flat[:, 1: r * r + 1], flat[:, r: r * r + r],
+                            flat[:, r + 1: r * r + r + 1]], 2)
+
+    def forward(self, depth_mm: torch.Tensor) -> torch.Tensor:
+        v = torch.index_select(self._taps(depth_mm), 1, self.base)  # (B, m, 4)
         return -(v * self.weights).sum(-1)
+
+    def moved(self, depth_mm: torch.Tensor, dxy_mm: torch.Tensor) -> torch.Tensor:
+        """u_z (B, m) mm: minus the bilinear read at rest (x, y) + ``dxy_mm`` (B, m, 2), edges
+        clamped; differentiable in ``dxy_mm`` (through the interpolation weights)."""
+        r = self.resolution
+        b = depth_mm.shape[0]
+        col = (self.col_rest + dxy_mm[..., 0] / self.pitch_mm).clamp(0.0, r - 1.0)
+        row = (self.row_rest - dxy_mm[..., 1] / self.pitch_mm).clamp(0.0, r - 1.0)
+        c0 = torch.floor(col).clamp(max=r - 2.0)
+        r0 = torch.floor(row).clamp(max=r - 2.0)
+        fc, fr = col - c0, row - r0
+        index = (r0 * r + c0).to(torch.int64) + torch.arange(b, device=depth_mm.device)[:, None] * (r * r)
+        v = torch.index_select(self._taps(depth_mm).reshape(b * r * r, 4), 0, index.reshape(-1)).reshape(b, -1, 4)
+        w = torch.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], -1)
+        return -(v * w).sum(-1)
+
+    def read(self, depth_mm: torch.Tensor, residual_mm: torch.Tensor, moved: bool) -> torch.Tensor:
+        """The anchor of a decoder whose residual displacement is ``residual_mm`` (B, n, 3) mm."""
+        return self.moved(depth_mm, residual_mm[:, : self.m, :2]) if moved else self(depth_mm)
 
 
 class SurfaceDecoder(nn.Module):
