@@ -155,7 +155,7 @@ def surface_run(tmp_path_factory, pad):
 
 
 def test_surface_train_export_parity(surface_run, pad, tmp_path):
-    from tactile_deploy.runtime.predictor import check_model_contract
+    from tactile_deploy.onnx_runtime.contract import check_model_contract
     from training.export import export_run, make_session, run_session
     from training.train import load_bundle, slim_bundle
 
