@@ -131,17 +131,21 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
 
 def deployed_path(variant: str) -> str:
     """One line: what the graph of ``variant`` computes."""
-    if variant.startswith("surface"):
-        path = ("sensing nodes anchored on the measured surface (u_z = -depth at each node) + the surface "
-                "decoder's residual (image encoder feature maps at every scale and latent -> convolutional "
+    int8 = "-int8" in variant
+    if variant.startswith(("surface", "hybrid")):
+        path = ("sensing nodes anchored on the measured surface (u_z = -depth where each node has moved) + the "
+                "surface decoder's residual (image encoder feature maps at every scale and latent -> convolutional "
                 "decoder -> residual displacement of every node)")
+        if variant.startswith("hybrid"):
+            path += ("; the sensing nodes' lateral displacement from the physics lift of their u_z (the pad's linear "
+                     "FEM, one dense product" + (", int8" if int8 else "") + ")")
+        precision = " (fp32" + (" but the lateral lift" if int8 else "") + ")"
     else:
         path = "image encoder (mean) -> latent projection -> " + (
             "lean grid decoder" if variant.startswith("lean") else "COMA mesh decoder")
-    return (path + (" (int8 QDQ encoder, image decoder" + (", projection" if not variant.startswith("surface") else "")
-                    + ")" if "-int8" in variant else " (fp32)")
-            + ("; ood_score from the lean image decoder" if variant.endswith("-fastood")
-               else "; ood_score from the image VAE decoder"))
+        precision = " (int8 QDQ encoder, projection, image decoder)" if int8 else " (fp32)"
+    return (path + precision + ("; ood_score from the lean image decoder" if variant.endswith("-fastood")
+                                else "; ood_score from the image VAE decoder"))
 
 
 def limitations(cfg: dict, variant: str) -> list[str]:
@@ -156,7 +160,7 @@ def limitations(cfg: dict, variant: str) -> list[str]:
         "The 5,380-node mesh smooths contact features finer than ~2 mm.",
         "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
     ]
-    if variant.startswith("surface"):
+    if variant.startswith(("surface", "hybrid")):
         out.append("The sensing nodes follow the depth map: an error of the depth map (read-out, camera view) "
                    "is an error of the mesh where it is, unless it looks like the noise the model was trained "
                    "to remove.")

@@ -76,7 +76,10 @@ def build_model(cfg: TrainConfig) -> Predictor:
 
     pad = load_pad()
     hierarchy = build_hierarchy(pad, cfg.model.mesh.factors, cfg.model.mesh.pooling)
-    return Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
+    model = Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
+    # the gel's Poisson ratio of the training data: the lateral physics lift of hybrid exports uses it
+    model.nu = cfg.data.synthetic.nu if cfg.data.synthetic is not None else 0.48
+    return model
 
 
 class _Tensors:

@@ -44,8 +44,10 @@ class AdaptationStep(nn.Module):
     """
 
     def __init__(self, model: Predictor, decoder: str | None = None,
-                 pixels_per_triangle: int = DEFAULT_PIXELS_PER_TRIANGLE):
+                 pixels_per_triangle: int = DEFAULT_PIXELS_PER_TRIANGLE, lateral: nn.Module | None = None):
         super().__init__()
+        #: the hybrid graphs' lateral physics lift (fixed), or None
+        self.lateral = lateral
         decoder = decoder or ("surface" if hasattr(model, "surface_decoder") else "lean")
         if decoder not in ("lean", "surface"):
             raise ValueError(f"decoder must be 'lean' or 'surface' (a deployed mesh decoder), got {decoder!r}")
@@ -93,7 +95,12 @@ class AdaptationStep(nn.Module):
                 maps.append(x)
         z = self.mu(self.fc(x))
         d = self.decoder(maps, z) * self.displacement_scale_mm
-        return add_anchor(d, self.anchor.read(depth_mm, d, self.moved))
+        uz = self.anchor.read(depth_mm, d, self.moved)
+        if self.lateral is not None:
+            from training.networks.surface_decoder import with_lateral
+
+            d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]))
+        return add_anchor(d, uz)
 
     def forward(self, depth_mm: torch.Tensor, target_mm: torch.Tensor, weight: torch.Tensor):
         """(loss () mm^2, per-map mse (B,) mm^2, rendered (B, R, R) mm, displacement (B, n, 3)

@@ -45,3 +45,36 @@ class LiftGraph(nn.Module):
         uz = self.anchor(depth)
         d = (uz @ self.Ht).reshape(depth.shape[0], -1, 3)
         return self.rest + d, d, torch.zeros_like(depth[:, 0, 0, 0])
+
+
+class LateralLift(nn.Module):
+    """u_z (B, m) mm of the sensing nodes -> their lateral displacement (B, m, 2) mm by the pad's
+    linear FEM: the physics lift's rows for the sensing nodes' x and y (surface free to slide,
+    backplate bonded). One dense (m x 2m) product: 2.3 M weights for the GelSlim pad.
+
+    H_xy : (m, 2, m) -- displacement (node, axis) per unit u_z of each sensing node.
+    """
+
+    def __init__(self, H_xy: np.ndarray):
+        super().__init__()
+        m = H_xy.shape[0]
+        if H_xy.shape != (m, 2, m):
+            raise ValueError(f"H_xy must be (m, 2, m), got {H_xy.shape}")
+        self.m = m
+        # column 2 * node + axis; not saved with the model (rebuilt from the pad's FEM)
+        self.register_buffer("weight", torch.as_tensor(np.ascontiguousarray(H_xy.reshape(2 * m, m).T),
+                                                       dtype=torch.float32), persistent=False)
+
+    @classmethod
+    def for_pad(cls, nu: float = 0.48) -> "LateralLift":
+        from tactile_deploy.fem.material import Material
+        from tactile_deploy.fem.surface_to_volume import SurfaceToVolume
+        from tactile_deploy.simulation.contact import get_simulator
+
+        s2v = SurfaceToVolume(get_simulator(Material(nu=nu)))
+        m = s2v.mesh.n_plane
+        H = s2v.H.reshape(s2v.mesh.n_nodes, 3, m)[:m, :2]
+        return cls(np.asarray(H, np.float32))
+
+    def forward(self, uz_mm: torch.Tensor) -> torch.Tensor:
+        return (uz_mm @ self.weight).reshape(uz_mm.shape[0], self.m, 2)

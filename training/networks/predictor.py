@@ -103,6 +103,9 @@ class Predictor(nn.Module):
                                                   cfg.image.resolution, lv.plane_xy_mm, lv.n_layers)
             self.anchor = SurfaceAnchor(lv.plane_xy_mm, cfg.image.resolution, cfg.surface.half_extent_mm)
             self.deploy_decoder = "surface"
+        #: With the surface decoder: the sensing nodes' lateral displacement from the physics lift of
+        #: their u_z instead of the decoder's (:meth:`use_lateral_lift`; the "hybrid" export variants).
+        self.lateral_lift = None
 
     # -- the deployed path, step by step -------------------------------------------------------
     def normalise_depth(self, depth_mm: torch.Tensor) -> torch.Tensor:
@@ -124,11 +127,21 @@ class Predictor(nn.Module):
         sensing layer's z. ``maps``, ``z``: the encoder's feature maps and latent when computed."""
         if maps is None:
             maps, z = self.image_vae.encoder.feature_maps(self.normalise_depth(depth_mm))
-        from training.networks.surface_decoder import add_anchor
+        from training.networks.surface_decoder import add_anchor, with_lateral
 
         residual = self.surface_decoder(maps, z)
-        uz = self.anchor.read(depth_mm, residual * self.norm.displacement_scale_mm, self.cfg.surface.anchor == "moved")
-        return add_anchor(residual, uz / self.norm.displacement_scale_mm[2])
+        scale = self.norm.displacement_scale_mm
+        uz = self.anchor.read(depth_mm, residual * scale, self.cfg.surface.anchor == "moved")
+        if self.lateral_lift is not None:
+            residual = with_lateral(residual, self.lateral_lift(uz + residual[:, : self.n_plane, 2] * scale[2]) / scale[:2])
+        return add_anchor(residual, uz / scale[2])
+
+    def use_lateral_lift(self, lift) -> None:
+        """Take the sensing nodes' lateral displacement from ``lift``
+        (:class:`training.networks.lift.LateralLift`: u_z -> x, y by the pad's FEM); None: the decoder's."""
+        if lift is not None and not hasattr(self, "surface_decoder"):
+            raise ValueError("the lateral lift completes the surface decoder; this model has none")
+        self.lateral_lift = lift
 
     def forward(self, depth_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """depth (N, 1, R, R) mm -> (vertices (N, n, 3) mm, displacement (N, n, 3) mm)."""

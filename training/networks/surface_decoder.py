@@ -78,6 +78,12 @@ def add_anchor(residual: torch.Tensor, uz: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, residual[:, m:]], dim=1)
 
 
+def with_lateral(residual: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Residual displacement (B, n, 3) with the x, y of its first m nodes replaced by ``xy`` (B, m, 2)."""
+    m = xy.shape[1]
+    return torch.cat([torch.cat([xy, residual[:, :m, 2:]], dim=2), residual[:, m:]], dim=1)
+
+
 class SurfaceAnchor(nn.Module):
     """depth (B, 1, R, R) mm -> u_z (B, m) mm of the sensing nodes: minus the bilinear sample of
     the depth map at each node's rest (x, y). Fixed (buffers only).
