@@ -271,19 +271,20 @@ def node_module_path(node) -> str:
     return parts[-2].split(":")[0] if len(parts) >= 2 else ""
 
 
-#: For the surface-anchored graphs: only the lateral physics lift (hybrid), a 2.3 M-weight product
-#: that int8 makes ~3x faster; their convolutions are small and about as fast in fp32.
-INT8_MODULES_SURFACE = ("lateral",)
+#: For the hybrid graphs: only the lateral physics lift, a 2.3 M-weight product that int8 makes ~3x
+#: faster; their convolutions are small and about as fast in fp32. The surface graphs (no lateral
+#: lift) quantise as the latent ones.
+INT8_MODULES_HYBRID = ("lateral",)
 
 
 def int8_nodes(model, variant: str | None = None) -> list[str]:
     """Names of the nodes :func:`quantise` turns into int8 for ``variant`` (default: the graph's
-    ``variant`` metadata): INT8_MODULES but INT8_EXCLUDE for the latent decoders'
-    graphs, INT8_MODULES_SURFACE for the surface-anchored ones."""
+    ``variant`` metadata): INT8_MODULES_HYBRID for the hybrid graphs, else INT8_MODULES but
+    INT8_EXCLUDE."""
     if variant is None:
         variant = {p.key: p.value for p in model.metadata_props}.get("variant", "")
-    surface = variant.startswith(("surface", "hybrid"))
-    prefixes = INT8_MODULES_SURFACE if surface else INT8_MODULES
+    surface = variant.startswith("hybrid")
+    prefixes = INT8_MODULES_HYBRID if surface else INT8_MODULES
     inits = {i.name for i in model.graph.initializer}
     out = []
     for n in model.graph.node:
