@@ -39,6 +39,21 @@ def _check_output_json(path: str, option: str) -> Path:
         raise UsageError(str(e)) from None
 
 
+def _card_of(card_path: Path, model: Path) -> dict:
+    """The model card at ``card_path`` if it describes ``model`` (same sha256), else UsageError."""
+    import hashlib
+    import json
+
+    if not card_path.is_file():
+        raise UsageError(f"--card {card_path}: no such file; give the model card written by python -m training export")
+    card = json.loads(card_path.read_text())
+    sha = hashlib.sha256(model.read_bytes()).hexdigest()
+    if card.get("files", {}).get("onnx_sha256") != sha:
+        raise UsageError(f"--card {card_path} describes another graph than {model} (sha256 differs): give the card "
+                         "exported with the first --model")
+    return card
+
+
 def _run_folder(path: str, option: str = "--run") -> Path:
     run = Path(path)
     if not run.is_dir():
@@ -108,6 +123,9 @@ def _main(argv: list[str]) -> int:
     p_eval.add_argument("--seed", type=int, default=2024)
     p_eval.add_argument("--domains", default=None, help="comma-separated subset of the domains")
     p_eval.add_argument("--shared", default="../shared/data/indenters", help="folder of the shared STL indenters")
+    p_eval.add_argument("--card", default=None,
+                        help="model card (<model>.json) of the first --model: its 'evaluation' section and markdown "
+                             "are rewritten with this report's table (the card must describe that very file)")
     args = parser.parse_args(argv)
 
     if args.command == "evaluate":
@@ -142,10 +160,22 @@ def _main(argv: list[str]) -> int:
             models[label] = model
         from training.evaluation import markdown_table
 
+        card_path = Path(args.card) if args.card else None
+        if card_path is not None:
+            card = _card_of(card_path, next(iter(models.values())))
         report = run_evaluation(models, args.n, args.seed, domains, Path(args.shared))
         write_json(out, report)
         print(markdown_table(report))
         print(f"wrote {out}")
+        if card_path is not None:
+            from training.card import write_card
+
+            label = next(iter(models))
+            card["evaluation"] = {
+                "command": "python -m training evaluate " + " ".join(map(str, argv[1:])),
+                "seed": args.seed, "report": str(out), "table": markdown_table(report, label)}
+            write_card(card, card_path, card_path.with_suffix(".md"))
+            print(f"wrote the evaluation into {card_path} and {card_path.with_suffix('.md')}")
         return 0
 
     if args.command == "slim-bundle":

@@ -259,7 +259,7 @@ def target_text(domain: str, m: dict) -> str:
     if deepest_max is not None:
         goals.append(f"|deepest| <= {deepest_max:g} %")
         if m["deepest_node_error_pct"]["mean_abs"] > deepest_max:
-            misses.append(f"deepest |.| {m['deepest_node_error_pct']['mean_abs']:.1f} %")
+            misses.append(f"deepest |.| {m['deepest_node_error_pct']['mean_abs']:.2f} %")
     if ratio_min is not None:
         goals.append(f">= {ratio_min:g}x the lift")
         if (m.get("lift_ratio") or 0) < ratio_min:

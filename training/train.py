@@ -734,7 +734,7 @@ def plot_curves(history: dict, path: Path) -> None:
         ax.semilogy(ep, [h["val_rmse_mm"] for h in hist], label="held-out")
         ax.set_title(name)
         ax.set_xlabel("epoch")
-        ax.set_ylabel("RMSE, mm" + (" (depth)" if name == "image_vae" else " (displacement)"))
+        ax.set_ylabel("RMSE, mm" + (" (depth)" if name in ("image_vae", "ood_decoder") else " (displacement)"))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
