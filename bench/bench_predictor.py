@@ -116,7 +116,8 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from training.export import VARIANTS, export_variant, make_session, run_session, torch_reference
+    from tactile_deploy.onnx_runtime.session import make_session
+    from training.export import VARIANTS, export_variant, run_session, torch_reference
     from training.metrics import mesh_metrics
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -182,7 +183,7 @@ def main(argv=None) -> int:
             "path": path, "kind": kind, "variant": v, "precision": "int8" if "-int8" in v else "fp32"}
         print(f"exported {v} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     for d in designs.values():
-        d["session"] = make_session(d["path"], threads=1)
+        d["session"] = make_session(d["path"], threads=1, providers="cpu")
         d["file_mb"] = sum(p.stat().st_size for p in Path(d["path"]).parent.glob(Path(d["path"]).name + "*")) / 2**20
 
     # -- accuracy --------------------------------------------------------------------------------

@@ -156,7 +156,8 @@ def surface_run(tmp_path_factory, pad):
 
 def test_surface_train_export_parity(surface_run, pad, tmp_path):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
-    from training.export import export_run, make_session, run_session
+    from tactile_deploy.onnx_runtime.session import make_session
+    from training.export import export_run, run_session
     from training.train import load_bundle, slim_bundle
 
     run, metrics = surface_run
@@ -184,7 +185,7 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
     # sensing layer's z is the depth map read where the residual moved each node, plus the residual
     model, _ = load_bundle(slim)
     depth = held["depth_mm"][:4, None].astype(np.float32)
-    _, d, _ = run_session(make_session(out), depth, batch=4)
+    _, d, _ = run_session(make_session(out, providers="cpu"), depth, batch=4)
     with torch.no_grad():
         x = torch.as_tensor(depth)
         maps, z = model.image_vae.encoder.feature_maps(model.normalise_depth(x))
