@@ -1,9 +1,9 @@
 """Image-to-mesh predictor: the designs side by side, accuracy where the contact is and speed on
 one CPU thread.
 
-    python bench/bench_predictor.py [--bundle exported/gelslim_mesh.pt]
+    python bench/bench_predictor.py [--shipped exported/gelslim_mesh.onnx] [--bundle exported/gelslim_mesh.pt]
         [--latent exported/baselines/gelslim_mesh_latent.onnx] [--n 256] [--rounds 300]
-        [--variants hybrid-int8-fastood,hybrid-fastood,surface-fastood] [--json results.json]
+        [--variants surface-fastood] [--json results.json]
         [--small] [--no-write]
     (or: tactile-deploy bench predictor)
 
@@ -20,7 +20,10 @@ displacement [N, 5380, 3] mm, ood_score [N]):
 * **surface**: sensing nodes anchored on the measured surface + the convolutional residual of the
   committed bundle (``--bundle``), lateral motion learned;
 * **hybrid** (shipped): the same, the sensing nodes' lateral motion from the physics lift of
-  their anchored u_z; int8 only in that product (``hybrid-int8-fastood``).
+  their anchored u_z; int8 only in that product (``hybrid-int8-fastood``): the committed graph
+  (``--shipped``) as it is, and its committed fp32 twin.
+
+``--variants`` exports further variants of the committed bundle here (default: the surface design).
 
 Accuracy (:func:`training.metrics.mesh_metrics`, per-node Euclidean errors): contact patch RMSE,
 deepest-node error (mean of |.| in % and signed mean), all-node RMSE, on fresh frictionless contacts
@@ -53,7 +56,7 @@ sys.path.insert(0, str(ROOT))
 
 TARGET_P50_MS = 1.0
 BENCH_SEED = 3003
-DEFAULT_VARIANTS = "hybrid-int8-fastood,hybrid-fastood,surface-fastood"
+DEFAULT_VARIANTS = "surface-fastood"
 
 
 def _small_model():
@@ -122,6 +125,8 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", default=str(ROOT / "exported" / "gelslim_mesh.pt"), help="training bundle (model.pt)")
+    ap.add_argument("--shipped", default=str(ROOT / "exported" / "gelslim_mesh.onnx"),
+                    help="the shipped graph, measured as committed (and its fp32 twin <stem>_fp32.onnx when present)")
     ap.add_argument("--latent", default=str(ROOT / "exported" / "baselines" / "gelslim_mesh_latent.onnx"),
                     help="the previous shipped (latent-decoder) graph, for comparison (skipped when missing)")
     ap.add_argument("--n", type=int, default=256, help="fresh frictionless contacts of the training indenters")
@@ -129,13 +134,14 @@ def main(argv=None) -> int:
                     help="folder of the shared STL indenters (never trained on)")
     ap.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     ap.add_argument("--rounds", type=int, default=300)
-    ap.add_argument("--variants", default=DEFAULT_VARIANTS)
+    ap.add_argument("--variants", default=DEFAULT_VARIANTS,
+                    help="other variants exported here from --bundle (comma-separated; '' for none)")
     ap.add_argument("--json", help="also write the results to this JSON file")
     ap.add_argument("--small", action="store_true", help="untrained model, 2 variants, few rounds")
     args = ap.parse_args(argv)
 
     torch.set_num_threads(1)
-    variants = args.variants.split(",")
+    variants = [v for v in args.variants.split(",") if v]
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         ap.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
@@ -164,7 +170,25 @@ def main(argv=None) -> int:
         designs["latent (previous shipped)"] = {"path": latent, "kind": "latent", "precision": "int8"}
     elif not args.small:
         print(f"{latent} not found: the latent design is left out", file=sys.stderr)
+    shipped_variant = variants[0] if args.small else None
     if not args.small:
+        from tactile_deploy.onnx_runtime.metadata import read_metadata
+        from training.export import fp32_twin
+
+        shipped = Path(args.shipped)
+        if not shipped.is_file():
+            ap.error(f"--shipped {shipped}: no such file (the shipped graph, exported/gelslim_mesh.onnx)")
+        shipped_variant = read_metadata(shipped).get("variant", "")
+        if shipped_variant not in VARIANTS:
+            ap.error(f"--shipped {shipped}: its metadata names no known variant (got {shipped_variant!r})")
+        designs[f"{shipped_variant} (shipped)"] = {"path": shipped, "kind": shipped_variant.split("-")[0],
+                                                   "variant": shipped_variant,
+                                                   "precision": "int8" if "-int8" in shipped_variant else "fp32"}
+        twin = shipped.with_name(shipped.stem + "_fp32.onnx")
+        if twin.is_file() and twin != shipped:
+            designs[f"{fp32_twin(shipped_variant)} (its fp32 twin)"] = {
+                "path": twin, "kind": shipped_variant.split("-")[0], "variant": fp32_twin(shipped_variant),
+                "precision": "fp32"}
         import torch.onnx
 
         from training.export import OUTPUTS, _onnx_export
@@ -179,12 +203,12 @@ def main(argv=None) -> int:
         path = export_variant(model, v, tmp / f"{v}.onnx", calib[:, None] if calib is not None and calib.ndim == 3
                               else calib, optimize=True)
         kind = v.split("-")[0]
-        designs[v + (" (shipped)" if v == "hybrid-int8-fastood" else "")] = {
+        designs[v] = {
             "path": path, "kind": kind, "variant": v, "precision": "int8" if "-int8" in v else "fp32"}
         print(f"exported {v} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     for d in designs.values():
         d["session"] = make_session(d["path"], threads=1, providers="cpu")
-        d["file_mb"] = sum(p.stat().st_size for p in Path(d["path"]).parent.glob(Path(d["path"]).name + "*")) / 2**20
+        d["file_mb"] = sum(p.stat().st_size for p in (Path(d["path"]), Path(str(d["path"]) + ".data")) if p.is_file()) / 2**20
 
     # -- accuracy --------------------------------------------------------------------------------
     n_plane = model.n_plane
@@ -202,7 +226,6 @@ def main(argv=None) -> int:
         rows["physics lift (reference: 3 passes, numpy)"] = {"kind": "lift", "precision": "fp64", "file_mb": None,
             "domains": {dom: mesh_metrics(physics_lift(depth), true, mask, n_plane)
                         for dom, (depth, true, mask) in data.items()}}
-    shipped_variant = variants[0]
     depth0 = data["primitives"][0][:, None].astype(np.float32)
     ref = torch_reference(model, shipped_variant, depth0[:64])[0]
     for name, d in designs.items():
@@ -296,6 +319,11 @@ def table(rows: dict, base_name: str, rounds: int, counts: dict, small: bool) ->
             f"| {f(u.get('contact_patch_rmse_um'), '.1f')} | {dn(u)} | {f(r.get('ood_auroc'), '.3f')} "
             f"| {f(r.get('file_mb'), '.1f')} |")
     lines += ["", f"`vs previous shipped`: p50 over the p50 of `{base_name}` in the same run."]
+    shipped = [r for name, r in rows.items() if name.endswith("(shipped)") and r.get("p50_ms") is not None]
+    if shipped:
+        p50 = shipped[0]["p50_ms"]
+        lines.append(f"Shipped graph p50 at batch 1: {p50:.3f} ms, target <= {TARGET_P50_MS} ms: "
+                     + ("met" if p50 <= TARGET_P50_MS else "**not met**") + " in this run.")
     return "\n".join(lines)
 
 

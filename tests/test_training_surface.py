@@ -120,13 +120,16 @@ def test_targets_and_table_of_an_evaluation_report():
     good, lift = metrics(20.0, 1.0), metrics(40.0, 8.0)
     good["lift_ratio"], lift["lift_ratio"] = 2.0, 1.0
     assert target_text("primitives", good).endswith("met") and "not met" not in target_text("primitives", good)
-    assert "**not met** (patch, deepest |.| 3.50 %)" in target_text("unseen_shapes", metrics(31.0, 3.5) | {"lift_ratio": 2})
+    assert "**not met** (patch, deepest node 3.50 %)" in target_text("unseen_shapes", metrics(31.0, 3.5) | {"lift_ratio": 2})
     assert "**not met** (ratio)" in target_text("stick", metrics(45.0, 9.0) | {"lift_ratio": 1.4})
     report = {"models": {"m": "x.onnx"}, "domains": {
         "primitives": {"n_samples": 4, "methods": {"m": good, PHYSICS_LIFT: lift}},
         "coulomb": {"unavailable": "no Coulomb solver"}}}
     table = markdown_table(report)
     assert "| primitives, frictionless (4) | **20.0** / 40.0 |" in table and "not measured: no Coulomb solver" in table
+    # every row has the header's cells (no "|" inside a cell)
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert {line.count("|") for line in rows} == {rows[0].count("|")}
 
 
 @pytest.fixture(scope="module")

@@ -130,7 +130,7 @@ def _main(argv: list[str]) -> int:
 
     if args.command == "evaluate":
         from tactile_deploy.atomic import write_json
-        from training.evaluation import DOMAINS, run_evaluation
+        from training.evaluation import DOMAINS, EvaluationReport, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
         unknown = [d for d in domains if d not in DOMAINS]
@@ -164,6 +164,7 @@ def _main(argv: list[str]) -> int:
         if card_path is not None:
             card = _card_of(card_path, next(iter(models.values())))
         report = run_evaluation(models, args.n, args.seed, domains, Path(args.shared))
+        EvaluationReport.model_validate(report)  # the committed format (training/evaluation_report.schema.json)
         write_json(out, report)
         print(markdown_table(report))
         print(f"wrote {out}")

@@ -28,6 +28,15 @@ class FileInfo(StrictModel):
     card_json: str
 
 
+class CardEvaluation(StrictModel):
+    """The per-domain evaluation of the card's graph against the physics lift."""
+
+    command: str = Field(description="The command that wrote it (and the report).")
+    seed: int = Field(ge=0, description="Seed of the fresh contacts.")
+    report: str = Field(description="The evaluation report (training.evaluation.EvaluationReport), path in the repository.")
+    table: str = Field(description="Markdown table: a row per domain, this graph beside the physics lift, targets.")
+
+
 class ModelCard(StrictModel):
     format_version: int = CARD_FORMAT
     name: str
@@ -52,9 +61,8 @@ class ModelCard(StrictModel):
     limitations: list[str]
     intended_use: list[str] = []
     export_seconds: float
-    evaluation: dict | None = Field(
-        None, description="Per-domain evaluation of this graph ({command, seed, table, report}: python -m training "
-        "evaluate ... --card), when run.",
+    evaluation: CardEvaluation | None = Field(
+        None, description="Per-domain evaluation of this graph (python -m training evaluate ... --card), when run.",
     )
 
 

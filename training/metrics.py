@@ -18,6 +18,33 @@ each figure is the root mean square of those distances over a set of nodes:
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
+
+from tactile_deploy.fileformat import StrictModel
+
+
+class DeepestNodeError(StrictModel):
+    """The truth's deepest sensing node: predicted depth minus true depth, % of the true depth."""
+
+    mean: float = Field(description="Signed mean over the contacts, % (< 0: too shallow).")
+    mean_abs: float = Field(description="Mean of the absolute error over the contacts, %.")
+    p95_abs: float = Field(description="95th percentile of the absolute error over the contacts, %.")
+
+
+class MeshMetrics(StrictModel):
+    """The figures of :func:`mesh_metrics` as written into reports and model cards."""
+
+    n_contacts: int = Field(ge=0)
+    all_node_rmse_um: float = Field(ge=0, description="RMS per-node Euclidean error over every node, um.")
+    surface_rmse_um: float = Field(ge=0, description="The same over the sensing layer, um.")
+    interior_rmse_um: float = Field(ge=0, description="The same over the free layers below it, um.")
+    relative_error: float = Field(ge=0, description="|pred - true| / |true| over all coordinates.")
+    contact_patch_rmse_um: float | None = Field(
+        None, ge=0, description="RMS per-node Euclidean error over the sensing nodes in contact, um.")
+    contact_nodes: int | None = Field(None, ge=0, description="Sensing nodes in contact, summed over the contacts.")
+    deepest_node_error_pct: DeepestNodeError
+    lift_ratio: float | None = Field(
+        None, ge=0, description="The physics lift's contact-patch RMSE over this method's (> 1: better than the lift).")
 
 
 def mesh_metrics(pred_mm: np.ndarray, true_mm: np.ndarray, contact_mask: np.ndarray | None, n_plane: int,
