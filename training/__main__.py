@@ -85,7 +85,8 @@ def _main(argv: list[str]) -> int:
         "<stem>.json and <stem>.md and, for int8 variants, the fp32 graph <stem>_fp32.onnx go beside it",
     )
     p_export.add_argument("--variant", default=None,
-                          help="export variant (default: the shipped one, lean-int8-fastood; see docs/predictor.md)")
+                          help="export variant (default: the shipped one, hybrid-int8-fastood, which needs the surface "
+                               "decoder; a run with the latent decoders only: e.g. lean-int8-fastood; docs/predictor.md)")
     p_export.add_argument("--overwrite", action="store_true", help="replace an existing --out and its files")
     p_export.add_argument("--bundle", default=None,
                           help="weights to export (default: RUN/model.pt; e.g. its slim bundle exported/gelslim_mesh.pt)")
