@@ -115,6 +115,18 @@ def test_predictor_latency_is_the_benchmark():
     assert rounded(p50_ms, ms) == ms, f"README ~{ms} ms, benchmark p50 {p50_ms} ms"
 
 
+def test_real_ball_adaptation_figures_are_the_benchmark():
+    lf0, lf1, ball0, ball1, cap0, cap1, lift, lift_cap = readme(
+        r"the label-free error falls \(([0-9.]+) -> ([0-9.]+) um\) while the sensing surface's error against the "
+        r"ball grows from ([0-9.]+) to ([0-9.]+) um RMS \(contact depth ([-+0-9.]+) % -> ([-+0-9.]+) %; the physics "
+        r"lift: ([0-9.]+) um, ([-+0-9.]+) %\)")
+    text = section("predictor-real")
+    before, after, physics = (table_row(text, name) for name in ("shipped model", "adapted (fp32)", "physics lift"))
+    assert (before[0], after[0], physics[0]) == (ball0, ball1, lift)
+    assert (before[1].split(" /")[0], after[1].split(" /")[0], physics[1].split(" /")[0]) == (cap0, cap1, lift_cap)
+    assert (before[2], after[2]) == (lf0, lf1)
+
+
 def test_learned_readout_depth_errors_are_the_benchmark():
     in1, in2, edge1, edge2 = readme(
         r"within ([0-9.]+) / ([0-9.]+) um RMS of the true depth near the contact inside the view "
