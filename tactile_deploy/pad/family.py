@@ -222,7 +222,7 @@ GELSIGHT_MINI = PadFamily(
     ),
 )
 
-_DIGIT_AREA = SensingArea(x_min_mm=-6.15, x_max_mm=6.15, y_min_mm=-8.2, y_max_mm=8.2)
+_DIGIT_AREA = SensingArea(x_min_mm=-6.129, x_max_mm=6.129, y_min_mm=-8.172, y_max_mm=8.172)
 DIGIT = PadFamily(
     name="digit",
     description="DIGIT: an 18.35 x 24.9 mm curved gel, 3 mm thick, on an acrylic window; the "

@@ -46,6 +46,7 @@ from pydantic import (
 from tactile_deploy.checksums import file_sha256
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.runtime.drift import ReferenceRange
 from tactile_deploy.runtime.sources.config import SourceConfig
 
 log = logging.getLogger(__name__)
@@ -127,16 +128,19 @@ class PluginManifest(BaseModel):
                       description="Plugin name (lower case, digits, '-' and '_').")
     description: str = Field("", description="One line about the sensor.")
     family: FamilySpec = Field(description="Sensor family and its pad mesh.")
-    model: FileRef = Field(description="ONNX model of the family: depth (N, 1, 128, 128) mm -> "
-                           "vertices (N, n, 3) mm (docs/onnx_contract.md).")
+    model: FileRef | None = Field(
+        None, description="ONNX model of the family: depth (N, 1, 128, 128) mm -> vertices "
+        "(N, n, 3) mm (docs/onnx_contract.md); null when the family has no learned model yet: "
+        "meshes then come from the physics lift of the pad (`run --mesh physics`).")
     adapted_model: FileRef | None = Field(
         None, description="Optional model adapted to this very sensor; used instead of `model` "
         "unless the user asks for the family model.")
     camera: CameraMapping = Field(description="Camera mapping: lens, homography to the sensing "
                                   "plane, and the imaging grid the shading model works on.")
     depth_grid: OutputGrid = Field(default_factory=OutputGrid,
-                                   description="Grid of the model's input depth map: +-17.5 mm, "
-                                   "128 x 128, row 0 at the largest y.")
+                                   description="Grid of the depth maps: the pad family's depth "
+                                   "grid (the GelSlim model's: +-17.5 mm, 128 x 128), row 0 at "
+                                   "the largest y.")
     shading: FileRef = Field(description="Shading model (.npz with JSON header) fitted on frames "
                              "rectified onto the camera's imaging grid.")
     readout: FileRef | None = Field(
@@ -163,20 +167,25 @@ class PluginManifest(BaseModel):
         "(None: the model's own threshold from its metadata).")
     provenance: dict[str, str] = Field(default_factory=dict,
                                        description="How the plugin was made (tool, date, inputs).")
+    reference_range: ReferenceRange | None = Field(
+        None, description="What the calibration saw of the no-contact image (illumination "
+        "drift, noise): `tactile-deploy run` warns when frames drift beyond it.")
 
     @model_validator(mode="after")
     def _check(self) -> PluginManifest:
-        if self.depth_grid != MODEL_GRID:
-            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()}, got "
-                             f"{self.depth_grid.model_dump()}")
+        if self.model is not None and self.depth_grid != MODEL_GRID:
+            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()} (the "
+                             f"learned model's input), got {self.depth_grid.model_dump()}")
         return self
 
     def files(self) -> dict[str, FileRef]:
         """Every file reference of the manifest, by field name."""
-        out = {"model": self.model, "shading": self.shading,
+        out = {"shading": self.shading,
                "reference_frame": self.reference_frame,
                "noise_reference": self.noise_reference, "demo_clip": self.demo_clip,
                "topology": self.topology}
+        if self.model is not None:
+            out["model"] = self.model
         if self.adapted_model is not None:
             out["adapted_model"] = self.adapted_model
         if self.readout is not None:
@@ -404,6 +413,10 @@ class SensorPlugin:
         if adapted and active is None:
             raise PluginError(f"plugin {self.name!r} has no adapted model; run without asking "
                               "for the adapted model, or adapt one first (tactile-deploy adapt)")
+        if not adapted and self.manifest.model is None:
+            raise PluginError(f"plugin {self.name!r} has no learned model (field 'model' is "
+                              "null): its meshes come from the physics lift of the pad; run with "
+                              "--mesh physics (the default for such a plugin)")
         return active if adapted else self.verified_path("model")
 
     def adapted_model_path(self) -> Path | None:
@@ -416,10 +429,12 @@ class SensorPlugin:
             rec = active_version(self.folder)
         except ValueError as e:
             raise PluginError(f"plugin {self.name!r}: {e}") from None
-        if rec is not None and rec.family_model_sha256 != self.manifest.model.sha256:
+        if rec is not None and (self.manifest.model is None
+                                or rec.family_model_sha256 != self.manifest.model.sha256):
             log.warning("plugin %r: adapted version %d was made from another family model (sha256 %s..., now "
                         "%s...); using the plugin's own model - adapt again for the new one", self.name,
-                        rec.version, rec.family_model_sha256[:12], self.manifest.model.sha256[:12])
+                        rec.version, rec.family_model_sha256[:12],
+                        "none" if self.manifest.model is None else self.manifest.model.sha256[:12])
         elif rec is not None:
             path = (self.folder / rec.model).resolve()
             if not path.is_file() or file_sha256(path) != rec.sha256:
@@ -593,7 +608,8 @@ def validate_plugin(name_or_path: str | os.PathLike, check_model: bool = True) -
     if check_model:
         from tactile_deploy.runtime.predictor import check_model_contract
 
-        attempt("model contract", lambda: check_model_contract(
+        if manifest.model is not None:
+            attempt("model contract", lambda: check_model_contract(
             plugin.verified_path("model"), manifest.family.mesh_hash, what=f"plugin "
             f"{manifest.name!r} model"))
         def adapted_contract():
@@ -618,6 +634,14 @@ def _check_family(plugin: SensorPlugin) -> None:
             f"plugin {plugin.name!r}: field 'family.mesh_hash' is {fam.mesh_hash[:16]}..., but "
             f"the pad {fam.pad} v{fam.pad_version} installed here has {mesh.content_hash[:16]}"
             "...; this plugin was made for another pad mesh: rebuild it for this one")
+    from tactile_deploy.pad.family import FAMILIES
+
+    family = FAMILIES.get(fam.pad)
+    grid = plugin.manifest.depth_grid
+    if family is not None and grid != family.depth_grid:
+        raise PluginError(
+            f"plugin {plugin.name!r}: field 'depth_grid' is {grid.model_dump()}, the pad "
+            f"{fam.pad}'s depth grid is {family.depth_grid.model_dump()}; rebuild the plugin")
 
 
 def _check_demo(plugin: SensorPlugin) -> None:

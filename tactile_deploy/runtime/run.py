@@ -185,7 +185,9 @@ class Runner:
         if o.out_dir is not None:
             from tactile_deploy.runtime.writers import MeshWriter
 
-            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
+            pipeline = getattr(self.predictor, "pipeline", None)
+            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm,
+                                     depth_grid=getattr(pipeline, "depth_grid", None))
             self._csv_tmp = o.out_dir / ".frames.csv.partial"
             self._csv = open(self._csv_tmp, "w", encoding="utf-8")
             self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
@@ -322,7 +324,8 @@ class Runner:
             laps.lap("publish")
         if self.writer is not None and frame.index % o.every == 0:
             self.writer.submit(frame.index, pred.vertices_mm,
-                               block=getattr(self.source, "finite", False))
+                               block=getattr(self.source, "finite", False),
+                               depth_mm=pred.depth_mm)
         if self._csv is not None:
             f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
             label = "" if frame.label is None else _csv_field(frame.label)

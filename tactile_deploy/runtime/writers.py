@@ -6,7 +6,9 @@ point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. PLY a
 displacement vector per vertex (``disp_x_mm``, ``disp_y_mm``, ``disp_z_mm``). Units mm, sensor
 frame, except GLB: glTF's unit is the metre, so GLB positions are in metres and its per-vertex
 displacement attributes are ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` (glTF names custom
-attributes with a leading underscore). File names ``mesh_<frame index, 6 digits>.<ext>``; every
+attributes with a leading underscore). ``npz`` -- one NumPy archive per frame
+(:func:`write_frame_npz`): ``vertices`` and ``rest_vertices`` (n, 3) float32 mm, ``depth``
+(ny, nx) float32 mm on the plugin's depth grid, and the grid, units and frame. File names ``mesh_<frame index, 6 digits>.<ext>``; every
 file is written atomically.
 
 If writing fails (disk full, folder removed, permissions changed), the error is logged once,
@@ -29,7 +31,8 @@ log = logging.getLogger(__name__)
 
 SURFACE_FORMATS = ("ply", "obj", "glb")
 VOLUME_FORMATS = ("vtu",)
-FORMATS = SURFACE_FORMATS + VOLUME_FORMATS
+ARRAY_FORMATS = ("npz",)
+FORMATS = SURFACE_FORMATS + VOLUME_FORMATS + ARRAY_FORMATS
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -71,6 +74,34 @@ def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
         meshio.write(tmp, out)
 
 
+def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray,
+                    depth_mm: np.ndarray | None, depth_grid=None, index: int | None = None) -> None:
+    """One frame as a NumPy archive (atomic): ``vertices``, ``rest_vertices`` (n, 3) float32 mm
+    (sensor frame; the pad asset's vertex order), ``depth`` (ny, nx) float32 mm (positive into
+    the gel; row 0 at the largest y) with ``depth_grid_mm`` = (x_min, x_max, y_min, y_max) and
+    ``sensing_nodes`` (k,) int32, ``mesh_hash`` and ``units`` strings."""
+    import json
+
+    arrays = {
+        "vertices": np.asarray(vertices_mm, np.float32),
+        "rest_vertices": np.asarray(topology.rest_vertices_mm, np.float32),
+        "sensing_nodes": np.asarray(topology.sensing_nodes, np.int32),
+        "mesh_hash": np.array(topology.mesh_hash),
+        "units": np.array(json.dumps({"vertices": "mm", "rest_vertices": "mm", "depth": "mm",
+                                      "depth_grid_mm": "mm", "frame": "sensor frame: origin at "
+                                      "the centre of the sensing surface, z out of the gel"})),
+    }
+    if depth_mm is not None:
+        arrays["depth"] = np.asarray(depth_mm, np.float32)
+    if depth_grid is not None:
+        g = depth_grid
+        arrays["depth_grid_mm"] = np.array([g.x_min_mm, g.x_max_mm, g.y_min_mm, g.y_max_mm])
+    if index is not None:
+        arrays["frame_index"] = np.array(int(index))
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+
+
 class MeshWriter:
     """Background writer of meshes into ``folder`` (module docstring).
 
@@ -79,11 +110,12 @@ class MeshWriter:
     """
 
     def __init__(self, folder: Path, topology, formats=("ply", "vtu"), max_mm: float = 1.0,
-                 queue_size: int = 8):
+                 queue_size: int = 8, depth_grid=None):
         self.folder = Path(folder)
         self.topology = topology
         self.formats = tuple(formats)
         self.max_mm = float(max_mm)
+        self.depth_grid = depth_grid
         self.written = 0
         self.skipped = 0
         self._count_lock = threading.Lock()  # skipped is counted by the loop and the writer
@@ -92,14 +124,16 @@ class MeshWriter:
         self._thread = threading.Thread(target=self._work, name="mesh writer", daemon=True)
         self._thread.start()
 
-    def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False) -> bool:
+    def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False,
+               depth_mm: np.ndarray | None = None) -> bool:
         """Queue a mesh; False when it was skipped (writing has failed, or the queue is full and
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
             self._skip()
             return False
-        item = (int(index), np.array(vertices_mm, np.float32))
+        item = (int(index), np.array(vertices_mm, np.float32),
+                None if depth_mm is None else np.array(depth_mm, np.float32))
         if block:
             while self._thread.is_alive() and self.error is None:
                 try:
@@ -125,14 +159,16 @@ class MeshWriter:
             item = self._q.get()
             if item is None:
                 return
-            index, v = item
+            index, v, depth = item
             if self.error is not None:      # queued before writing failed
                 self._skip()
                 continue
             try:
                 for fmt in self.formats:
                     path = self.folder / f"mesh_{index:06d}.{fmt}"
-                    if fmt in VOLUME_FORMATS:
+                    if fmt in ARRAY_FORMATS:
+                        write_frame_npz(path, self.topology, v, depth, self.depth_grid, index)
+                    elif fmt in VOLUME_FORMATS:
                         write_volume(path, self.topology, v)
                     else:
                         write_surface(path, self.topology, v, self.max_mm)
