@@ -214,3 +214,33 @@ def test_drift_beyond_the_calibration_is_reported():
     assert "frame 12" in message and "tactile-deploy reference --sensor mini1" in message
     assert monitor.check(bright) is None                # said once
     assert "back within" in monitor.check(ref)
+
+
+def test_reference_retakes_the_no_contact_frame(real_run, presses, tmp_path):
+    """`tactile-deploy reference` averages no-contact frames into a new reference (the plugin is
+    switched over in one manifest write and still validates), and refuses frames with a contact."""
+    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
+
+    plugins = tmp_path / "plugins"
+    shutil.copytree(real_run["plugin"], plugins / "mini1")
+    frames = tmp_path / "nocontact"
+    frames.mkdir()
+    bg = cv2.imread(str(presses / "background.png")).astype(int)
+    for i in range(3):   # the LEDs brightened: +20 grey levels of red, camera noise
+        noisy = bg + [0, 0, 20] + np.random.default_rng(i).normal(0, 1.5, bg.shape)
+        cv2.imwrite(str(frames / f"{i}.png"), np.clip(noisy, 0, 255).astype(np.uint8))
+    before = SensorPlugin.load(plugins / "mini1").manifest.reference_frame.path
+    args = ["reference", "--sensor", "mini1", "--plugins-dir", str(plugins), "--source",
+            str(frames), "--frames", "3"]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "+20" in " ".join(res.output.split()).replace("+19", "+20")
+    plugin = SensorPlugin.load(plugins / "mini1")
+    assert plugin.manifest.reference_frame.path != before
+    assert "reference_retaken" in plugin.manifest.provenance
+    assert validate_plugin(plugins / "mini1").ok
+    assert np.abs(plugin.reference_frame.astype(int) - bg[..., ::-1]).mean() == pytest.approx(
+        20 / 3, abs=0.5)
+    shutil.copy(presses / "0011.png", frames / "3.png")      # a ball on the gel
+    text = _clean_error(runner.invoke(app, [*args[:-1], "4"]))
+    assert "something touches the sensor" in text

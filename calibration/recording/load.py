@@ -26,6 +26,7 @@ import numpy as np
 
 from calibration.recording.errors import PlausibilityError
 from calibration.shading.presses import IMAGE_SUFFIXES, PressDataError, read_annotations
+from tactile_deploy.runtime.reference import contact_edge_score
 
 #: A frame scoring below this fraction of the presses' median contact-edge score has no contact.
 NO_CONTACT_FRACTION = 0.5
@@ -61,16 +62,6 @@ def read_colour_image(path: str | os.PathLike) -> np.ndarray:
             f"{path}: its three channels are identical (a greyscale image saved as RGB); the "
             "shading calibration needs the sensor's colour frames: record them in colour")
     return rgb
-
-
-def contact_edge_score(frame: np.ndarray) -> float:
-    """99.5th percentile of the colour-gradient magnitude, grey levels per px (module doc)."""
-    import cv2
-
-    g = cv2.GaussianBlur(frame.astype(np.float32), (0, 0), 2.0)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    return float(np.percentile(np.sqrt((gx * gx + gy * gy).sum(-1)), 99.5))
 
 
 @dataclass

@@ -25,6 +25,8 @@ BENCHMARKS = {
     "runtime": "bench_runtime.py",
     "adapt": "bench_adapt.py",
     "discrepancy": "bench_discrepancy.py",
+    "recording": "bench_recording.py",
+    "families": "bench_families.py",
 }
 
 

@@ -225,9 +225,9 @@ GELSIGHT_MINI = PadFamily(
 _DIGIT_AREA = SensingArea(x_min_mm=-6.129, x_max_mm=6.129, y_min_mm=-8.172, y_max_mm=8.172)
 DIGIT = PadFamily(
     name="digit",
-    description="DIGIT: an 18.35 x 24.9 mm curved gel, 3 mm thick, on an acrylic window; the "
-    "camera (240 x 320 px portrait) sees about 12.3 x 16.4 mm of it.",
-    outline="rectangle", width_mm=18.35, length_mm=24.9, thickness_mm=3.0, crown_mm=0.5,
+    description="DIGIT: an 18.35 x 24.9 mm gel, 3 mm thick, on an acrylic window; the camera "
+    "(240 x 320 px portrait) sees about 12.3 x 16.3 mm of it.",
+    outline="rectangle", width_mm=18.35, length_mm=24.9, thickness_mm=3.0,
     sensing_area=_DIGIT_AREA,
     sensing_spacing_mm=0.5, outer_spacing_mm=1.25, spacing_growth=1.3,
     n_layers=5, top_layer_mm=0.5, layer_growth=1.2,
@@ -247,7 +247,9 @@ DIGIT = PadFamily(
     assumptions=(
         "thickness 3.0 mm: not published; a simplified housing model shows the gel protruding "
         "3.8 mm including its curve and rim",
-        "crown 0.5 mm from the FOTS curved-gel model, as a paraboloid over the pad",
+        "flat mesh: FOTS models the gel with a 0.5 mm curve; depth is measured from the rest "
+        "surface, and a virtual DIGIT carries the curve as its dome effect (a curved mesh would "
+        "change forces by the curve's share of the 3 mm gel)",
         "sensing area 12.3 x 16.4 mm: the 240 x 320 px view at 19.58 px per mm, centred",
         "sides free",
     ),
