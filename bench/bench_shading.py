@@ -40,8 +40,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
@@ -183,30 +181,6 @@ def figure(presses, path: Path, fold: int = 0, folds: int = 7, mlp_steps: int = 
     plt.close(fig)
 
 
-#: Presses nearest the image border listed on their own (corners and edges of the field).
-N_BORDER = 8
-
-
-def border_press_lines(presses, results) -> list[str]:
-    """Markdown rows of the ``N_BORDER`` presses whose contact lies nearest the image border
-    (distance from the nearest border in contact radii, labelled circles): each press's held-out
-    shape error and fitted radius error."""
-    h, w = presses.shape
-    c = presses.circles
-    dist = np.minimum.reduce([c[:, 0] + 0.5, w - 0.5 - c[:, 0], c[:, 1] + 0.5,
-                              h - 0.5 - c[:, 1]]) / c[:, 2]
-    order = np.argsort(dist, kind="stable")[:N_BORDER]
-    lines = ["", (f"The {N_BORDER} presses nearest the image border (ours, held out; the "
-                  "recording has none closer than these):"), "",
-             "| press | distance from the nearest border (contact radii) | shape error (um) | "
-             "fitted radius error |", "|---|---:|---:|---:|"]
-    for i in order:
-        r = results[i]
-        lines.append(f"| {r.name} | {dist[i]:.2f} | {r.shape_um:.1f} | "
-                     f"{100 * r.radius_error:+.1f} % |")
-    return lines
-
-
 def markdown(presses, comp, folds: int, timings: dict) -> str:
     """The BENCHMARKS.md section: the three methods side by side, the targets, the speeds."""
     from bench.report import machine_line
@@ -240,8 +214,6 @@ def markdown(presses, comp, folds: int, timings: dict) -> str:
         "| target (ours) | measured | met |",
         "|---|---:|---|",
         *[f"| {name} | {value} | {'yes' if ok else '**no**'} |" for name, ok, value in checks],
-        "",
-        *border_press_lines(presses, comp.results["lut"]),
         "",
         "Cross-validation wall time (the methods in two processes): "
         + ", ".join(f"{METHOD_NAMES[k].split(' (')[0]} {v:.1f} s" for k, v in

@@ -106,7 +106,12 @@ def test_held_out_meshes_are_the_ball_inside_each_contact(real_run):
     from calibration.recording.mesh_check import circles_to_sensor_mm, press_mesh_fit
     from tactile_deploy.runtime.plugins import SensorPlugin
 
+    import json
+
+    from tactile_deploy.runtime.predictor import MeshTopology
+
     camera = SensorPlugin.load(real_run["plugin"]).manifest.camera
+    sensing = MeshTopology.from_pad("gelsight_mini").sensing_nodes
     out = real_run["out"]
     with open(out / "frames.csv", newline="") as f:
         frames = list(csv.DictReader(f))
@@ -117,8 +122,9 @@ def test_held_out_meshes_are_the_ball_inside_each_contact(real_run):
         z = np.load(out / f"mesh_{int(row['frame_index']):06d}.npz")
         assert z["vertices"].shape == z["rest_vertices"].shape == (10716, 3)
         assert z["depth"].shape == (96, 124)                    # the family's depth grid
+        assert json.loads(str(z["metadata"]))["depth_grid_mm"]["nx"] == 124
         centre, radius = circles_to_sensor_mm(np.array([real_run["labels"][name]]), camera)
-        fits.append(press_mesh_fit(name, z["vertices"], z["rest_vertices"], z["sensing_nodes"],
+        fits.append(press_mesh_fit(name, z["vertices"], z["rest_vertices"], sensing,
                                    centre[0], radius[0], BALL_MM))
     shape = np.array([f.shape_um for f in fits])
     radius_err = np.array([f.radius_error for f in fits])

@@ -2,13 +2,18 @@
 
 Formats (chosen per run): ``ply``, ``obj``, ``glb`` -- the outer surface through trimesh, vertex
 colours by displacement magnitude on a fixed scale; ``vtu`` -- the tet volume through meshio with
-point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``. PLY also carries the
+point data ``displacement_mm`` (vector) and ``displacement_magnitude_mm``; ``npz`` -- the frame's arrays
+for programs (:func:`write_frame_npz`: ``vertices``, ``rest_vertices``, ``depth``). PLY also carries the
 displacement vector per vertex (``disp_x_mm``, ``disp_y_mm``, ``disp_z_mm``). Units mm, sensor
-frame, except GLB: glTF's unit is the metre, so GLB positions are in metres and its per-vertex
-displacement attributes are ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` (glTF names custom
-attributes with a leading underscore). ``npz`` -- one NumPy archive per frame
-(:func:`write_frame_npz`): ``vertices`` and ``rest_vertices`` (n, 3) float32 mm, ``depth``
-(ny, nx) float32 mm on the plugin's depth grid, and the grid, units and frame. File names ``mesh_<frame index, 6 digits>.<ext>``; every
+frame, except GLB: glTF's unit is the metre and its up axis is y, so GLB positions are in metres
+in glTF's axes (sensor (x, y, z) -> glTF (x, z, -y): the pad's surface faces +y) and its
+per-vertex displacement attributes ``_disp_x_m``, ``_disp_y_m``, ``_disp_z_m`` are along glTF's
+axes (glTF names custom attributes with a leading underscore).
+
+Vertex order: vertex i of every file is vertex i of the pad mesh (the model's output order,
+``topology.npz``). Surface files (PLY, OBJ, GLB) hold all vertices, the interior ones unused by
+their faces: a reader that drops unused vertices or merges duplicates renumbers the mesh.
+:func:`tactile_deploy.runtime.meshfiles.read_mesh` reads every format back in this order. File names ``mesh_<frame index, 6 digits>.<ext>``; every
 file is written atomically.
 
 If writing fails (disk full, folder removed, permissions changed), the error is logged once,
@@ -17,9 +22,11 @@ further writes are skipped, and :attr:`MeshWriter.error` holds the message; the 
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +40,8 @@ SURFACE_FORMATS = ("ply", "obj", "glb")
 VOLUME_FORMATS = ("vtu",)
 ARRAY_FORMATS = ("npz",)
 FORMATS = SURFACE_FORMATS + VOLUME_FORMATS + ARRAY_FORMATS
+#: Version of the per-frame ``.npz`` layout (:func:`write_frame_npz`).
+FRAME_NPZ_VERSION = 1
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -52,6 +61,8 @@ def write_surface(path: Path, topology, vertices_mm: np.ndarray, max_mm: float =
     mag = np.linalg.norm(disp, axis=1)
     glb = path.suffix == ".glb"
     scale, unit = (1e-3, "m") if glb else (1.0, "mm")
+    if glb:       # glTF: metres, y up: (x, y, z) of the sensor frame -> (x, z, -y)
+        v, disp = v @ SENSOR_TO_GLTF.T, disp @ SENSOR_TO_GLTF.T
     mesh = trimesh.Trimesh(v * scale, topology.surface_faces, process=False)
     rgb = colourise(mag, max_mm)
     mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(v), 1), 255, np.uint8)], 1)
@@ -74,32 +85,49 @@ def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
         meshio.write(tmp, out)
 
 
-def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray,
-                    depth_mm: np.ndarray | None, depth_grid=None, index: int | None = None) -> None:
-    """One frame as a NumPy archive (atomic): ``vertices``, ``rest_vertices`` (n, 3) float32 mm
-    (sensor frame; the pad asset's vertex order), ``depth`` (ny, nx) float32 mm (positive into
-    the gel; row 0 at the largest y) with ``depth_grid_mm`` = (x_min, x_max, y_min, y_max) and
-    ``sensing_nodes`` (k,) int32, ``mesh_hash`` and ``units`` strings."""
-    import json
+def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.ndarray | None,
+                    metadata: dict | None = None, depth_grid=None) -> None:
+    """One frame's arrays as ``.npz`` (compressed, atomic), the names of ``simulate --out``:
 
-    arrays = {
-        "vertices": np.asarray(vertices_mm, np.float32),
-        "rest_vertices": np.asarray(topology.rest_vertices_mm, np.float32),
-        "sensing_nodes": np.asarray(topology.sensing_nodes, np.int32),
-        "mesh_hash": np.array(topology.mesh_hash),
-        "units": np.array(json.dumps({"vertices": "mm", "rest_vertices": "mm", "depth": "mm",
-                                      "depth_grid_mm": "mm", "frame": "sensor frame: origin at "
-                                      "the centre of the sensing surface, z out of the gel"})),
-    }
+    vertices       (n, 3) float32  mm, sensor frame, deformed (vertex i = pad mesh vertex i)
+    rest_vertices  (n, 3) float32  mm, sensor frame, the undeformed pad mesh
+    depth          (128, 128) float32  mm pushed in along -z, model grid (row 0 = largest y)
+    metadata       () str          JSON: format, version, units, frame, mesh_hash, and what the
+                                   run adds (sensor, frame_index, t_capture_ns, ...)
+    """
+    from tactile_deploy.atomic import write_npz
+    from tactile_deploy.runtime.publish import SENSOR_FRAME
+
+    meta = {"format": "tactile-deploy.frame", "version": FRAME_NPZ_VERSION,
+            "units": {"vertices": "mm", "rest_vertices": "mm", "depth": "mm"},
+            "frame": SENSOR_FRAME, "mesh_hash": topology.mesh_hash,
+            "depth": "mm the surface is pushed in along -z; 128 x 128 over +-17.5 mm, row 0 at the "
+                     "largest y"}
+    if depth_grid is not None:      # a pad family's own depth grid (docs/families.md)
+        g = depth_grid
+        meta["depth"] = (f"mm the surface is pushed in along -z; {g.ny} x {g.nx} cells of "
+                         f"{g.pitch_x_mm:.4g} mm, row 0 at the largest y")
+        meta["depth_grid_mm"] = {"x_min": g.x_min_mm, "x_max": g.x_max_mm, "y_min": g.y_min_mm,
+                                 "y_max": g.y_max_mm, "nx": g.nx, "ny": g.ny}
+    meta.update(metadata or {})
+    arrays = {"vertices": np.asarray(vertices_mm, np.float32),
+              "rest_vertices": np.asarray(topology.rest_vertices_mm, np.float32)}
     if depth_mm is not None:
         arrays["depth"] = np.asarray(depth_mm, np.float32)
-    if depth_grid is not None:
-        g = depth_grid
-        arrays["depth_grid_mm"] = np.array([g.x_min_mm, g.x_max_mm, g.y_min_mm, g.y_max_mm])
-    if index is not None:
-        arrays["frame_index"] = np.array(int(index))
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, **arrays)
+    from tactile_deploy.atomic import finite_or_null
+
+    # strict JSON: a score not computed (NaN, the physics lift has no OOD score) is null
+    write_npz(path, **arrays, metadata=np.array(json.dumps(finite_or_null(meta))))
+
+
+#: Why a requested mesh was not written.
+REASON_QUEUE_FULL = "writer queue full (the disk is slower than the live sensor)"
+REASON_FAILED = "writing failed (see the write error)"
+
+
+#: Rotation from the sensor frame (z out of the gel) to glTF's axes (y up, right-handed):
+#: a -90 degree turn about x, (x, y, z) -> (x, z, -y).
+SENSOR_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 class MeshWriter:
@@ -112,12 +140,17 @@ class MeshWriter:
     def __init__(self, folder: Path, topology, formats=("ply", "vtu"), max_mm: float = 1.0,
                  queue_size: int = 8, depth_grid=None):
         self.folder = Path(folder)
+        self.depth_grid = depth_grid
         self.topology = topology
         self.formats = tuple(formats)
         self.max_mm = float(max_mm)
-        self.depth_grid = depth_grid
         self.written = 0
         self.skipped = 0
+        #: skipped meshes by reason
+        self.skipped_reasons: Counter = Counter()
+        #: ``(frame index, None or the reason it was not written)`` of each queued mesh, in
+        #: order, appended by the writer thread (the run drains it for frames.csv)
+        self.results: deque = deque()
         self._count_lock = threading.Lock()  # skipped is counted by the loop and the writer
         self.error: str | None = None
         self._q: queue.Queue = queue.Queue(maxsize=queue_size)
@@ -125,15 +158,15 @@ class MeshWriter:
         self._thread.start()
 
     def submit(self, index: int, vertices_mm: np.ndarray, block: bool = False,
-               depth_mm: np.ndarray | None = None) -> bool:
+               depth_mm: np.ndarray | None = None, metadata: dict | None = None) -> bool:
         """Queue a mesh; False when it was skipped (writing has failed, or the queue is full and
         ``block`` is False). Recordings block (every requested mesh is written); live sources
         do not (the sensor loop must not wait for the disk)."""
         if self.error is not None:
-            self._skip()
+            self._skip(REASON_FAILED)
             return False
         item = (int(index), np.array(vertices_mm, np.float32),
-                None if depth_mm is None else np.array(depth_mm, np.float32))
+                None if depth_mm is None else np.array(depth_mm, np.float32), metadata)
         if block:
             while self._thread.is_alive() and self.error is None:
                 try:
@@ -141,40 +174,48 @@ class MeshWriter:
                     return True
                 except queue.Full:
                     continue
-            self._skip()
+            self._skip(REASON_FAILED)
             return False
         try:
             self._q.put_nowait(item)
             return True
         except queue.Full:
-            self._skip()
+            self._skip(REASON_QUEUE_FULL)
             return False
 
-    def _skip(self) -> None:
+    def files_for(self, index: int) -> list[str]:
+        """Names of the files written for frame ``index``."""
+        return [f"mesh_{int(index):06d}.{fmt}" for fmt in self.formats]
+
+    def _skip(self, reason: str) -> None:
         with self._count_lock:
             self.skipped += 1
+            self.skipped_reasons[reason] += 1
 
     def _work(self) -> None:
         while True:
             item = self._q.get()
             if item is None:
                 return
-            index, v, depth = item
+            index, v, depth, meta = item
             if self.error is not None:      # queued before writing failed
-                self._skip()
+                self._skip(REASON_FAILED)
+                self.results.append((index, REASON_FAILED))
                 continue
             try:
                 for fmt in self.formats:
                     path = self.folder / f"mesh_{index:06d}.{fmt}"
-                    if fmt in ARRAY_FORMATS:
-                        write_frame_npz(path, self.topology, v, depth, self.depth_grid, index)
-                    elif fmt in VOLUME_FORMATS:
+                    if fmt in VOLUME_FORMATS:
                         write_volume(path, self.topology, v)
+                    elif fmt in ARRAY_FORMATS:
+                        write_frame_npz(path, self.topology, v, depth, meta, self.depth_grid)
                     else:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1
+                self.results.append((index, None))
             except Exception as e:  # noqa: BLE001 - any failure stops writing, the loop goes on
-                self._skip()
+                self._skip(REASON_FAILED)
+                self.results.append((index, REASON_FAILED))
                 self.error = (f"writing meshes into {self.folder} failed at frame {index}: "
                               f"{type(e).__name__}: {e}; no further meshes are written")
                 log.error(self.error)
