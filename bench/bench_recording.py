@@ -17,6 +17,7 @@ per frame against the frame -> depth it follows, same frames, same run.
 from __future__ import annotations
 
 import argparse
+import os
 import csv
 import shutil
 import sys
@@ -111,7 +112,8 @@ def markdown(fits, metrics, times, labels) -> str:
     lines = [
         "## Real presses -> plugin (one command) -> meshes (`tactile-deploy bench recording`)",
         "",
-        (f"{machine_line()}. Data: `../shared/data/real/fots_gelsight_ballpress` (42 presses of "
+        (f"{machine_line()} (load average {os.getloadavg()[1]:.1f} over the run's last "
+         "5 minutes: the machine was shared, times are longer than alone). Data: `../shared/data/real/fots_gelsight_ballpress` (42 presses of "
          "a 2.35 mm ball, 240 x 320 px portrait, 19.58 px/mm). `calibrate --pad gelsight_mini "
          "--presses ... --annotations ... --ball-radius-mm 2.35 --mm-per-px 0.05107` on the odd "
          "presses meshes the even ones and the reverse, so every press is held out once; the "

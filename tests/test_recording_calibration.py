@@ -151,7 +151,7 @@ def _calibrate(presses: Path, tmp_path: Path, *extra: str, radius: str = str(BAL
 def test_diameter_given_as_radius(presses, tmp_path):
     text = _clean_error(_calibrate(presses, tmp_path, "--mm-per-px", str(MM_PER_PX),
                                    radius="4.7", annotations=presses / "annotate.csv"))
-    assert "DIAMETER" in text and "--ball-radius-mm 2.35" in text
+    assert "DIAMETER" in text and "--ball-radius-mm 2.35" in text and "--shallow-presses" in text
 
 
 def test_radius_in_micrometres_and_too_small(presses, tmp_path):

@@ -96,8 +96,8 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                         annotations: str | os.PathLike | None = None,
                         mm_per_px: float | None = None, out: str | os.PathLike | None = None,
                         plugins_dir: str | os.PathLike | None = None, overwrite: bool = False,
-                        folds: int = 5, say: Callable[[str], None] = print
-                        ) -> RecordingCalibration:
+                        folds: int = 5, shallow_presses: bool = False,
+                        say: Callable[[str], None] = print) -> RecordingCalibration:
     """Calibrate a plugin from recorded ball presses (module docstring). Raises
     :class:`~calibration.recording.errors.PlausibilityError`,
     :class:`~calibration.shading.presses.PressDataError` or
@@ -156,7 +156,12 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
     else:
         circles_raw = _detect_all(rec)
         notes.append(f"contact circles detected in {len(circles_raw)} frames (no --annotations)")
-    figures = check_ball_radius(circles_raw, mm_per_px, ball_radius_mm, rec.names, scale_given)
+    figures = check_ball_radius(circles_raw, mm_per_px, ball_radius_mm, rec.names, scale_given,
+                                shallow_presses)
+    if shallow_presses and figures["largest contact radius / ball radius"] < 0.55:
+        notes.append("--shallow-presses: the contact circles stay within "
+                     f"{figures['largest contact radius / ball radius']:.2f} of the ball's "
+                     "radius; depth of steeper contacts than these presses will be read too flat")
 
     rectifier = Rectifier(camera, supersample=1)
 

@@ -150,9 +150,12 @@ def check_annotation_axes(circles: np.ndarray, shape_hw: tuple[int, int], names:
 
 # ------------------------------------------------------------------------------- ball radius
 def check_ball_radius(circles_px: np.ndarray, mm_per_px: float, ball_radius_mm: float,
-                      names: list[str], scale_given: bool = True) -> dict:
+                      names: list[str], scale_given: bool = True,
+                      shallow_presses: bool = False) -> dict:
     """Refuse a ball radius (or scale) that the contact circles contradict (module docstring).
-    Returns the figures checked: largest contact radius (mm, and / R), deepest implied cap (mm)."""
+    ``shallow_presses``: the user states the radius is right and the presses shallow (the
+    diameter check is skipped). Returns the figures checked: largest contact radius (mm, and
+    / R), deepest implied cap (mm)."""
     if not (math.isfinite(ball_radius_mm) and ball_radius_mm > 0):
         raise PlausibilityError(f"--ball-radius-mm must be a number > 0 (mm), got {ball_radius_mm}")
     a = np.asarray(circles_px, np.float64)[:, 2] * mm_per_px
@@ -174,14 +177,15 @@ def check_ball_radius(circles_px: np.ndarray, mm_per_px: float, ball_radius_mm: 
             "less than a visible press: is the radius given in micrometres (2.35 mm, not 2350)? "
             f"Or check {scale}")
     ratio = a.max() / r
-    if ratio < DIAMETER_RATIO:
+    if ratio < DIAMETER_RATIO and not shallow_presses:
         raise PlausibilityError(
             f"--ball-radius-mm {r:g}: every contact circle stays within {ratio:.2f} of it (at "
             f"most {a.max():.2f} mm). A contact never exceeds the ball's radius, so that is what "
             f"a DIAMETER given as the radius looks like: if {r:g} mm is the diameter, give "
             f"--ball-radius-mm {r / 2:g}. If the radius is right, the presses are too shallow "
             f"to calibrate (slopes only up to {ratio / math.sqrt(1 - ratio * ratio):.2f}): "
-            "press deeper, to contact radii of at least 0.6 of the ball's")
+            "press deeper, to contact radii of at least 0.6 of the ball's (or, keeping these "
+            "presses, pass --shallow-presses)")
     return {"largest contact radius (mm)": float(a.max()),
             "largest contact radius / ball radius": float(ratio),
             "deepest implied cap (mm)": float(cap.max())}

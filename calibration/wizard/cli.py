@@ -67,6 +67,9 @@ def calibrate_callback(
         "plugins (DIR/NAME), where `run --plugins-dir DIR --sensor NAME` finds it."),
     folds: int = typer.Option(5, "--folds", help="With --presses: held-out check, k-fold over "
                               "the presses (0: none)."),
+    shallow_presses: bool = typer.Option(
+        False, "--shallow-presses", help="With --presses: the ball radius is right although "
+        "every contact stays within half of it (skips the diameter check)."),
 ) -> None:
     """Calibrate a new sensor (the wizard), or run one step with a subcommand."""
     given = [n for n, v in (("--sensor", sensor), ("--rig", rig), ("--gauge", gauge),
@@ -95,7 +98,7 @@ def calibrate_callback(
         from calibration.recording.cli import calibrate_from_recording
 
         calibrate_from_recording(sensor, pad, presses, ball_radius_mm, reference, annotations,
-                                 mm_per_px, plugins_dir, out, overwrite, folds)
+                                 mm_per_px, plugins_dir, out, overwrite, folds, shallow_presses)
         return
     if recording_only:
         _fail(f"{', '.join(recording_only)} go with --presses DIR (a calibration from recorded "
