@@ -29,6 +29,20 @@ BALL_MM = 2.35
 MM_PER_PX = 1 / 19.58
 
 
+@pytest.fixture(autouse=True)
+def _plugin_path_restored():
+    """`--plugins-dir` puts folders on $TACTILE_DEPLOY_PLUGIN_PATH for the process: restore it
+    after each test, so that no other test finds these plugins."""
+    import os
+
+    old = os.environ.get("TACTILE_DEPLOY_PLUGIN_PATH")
+    yield
+    if old is None:
+        os.environ.pop("TACTILE_DEPLOY_PLUGIN_PATH", None)
+    else:
+        os.environ["TACTILE_DEPLOY_PLUGIN_PATH"] = old
+
+
 @pytest.fixture(scope="module")
 def presses(shared_data) -> Path:
     folder = shared_data / "real" / "fots_gelsight_ballpress"
@@ -250,3 +264,16 @@ def test_reference_retakes_the_no_contact_frame(real_run, presses, tmp_path):
     shutil.copy(presses / "0011.png", frames / "3.png")      # a ball on the gel
     text = _clean_error(runner.invoke(app, [*args[:-1], "4"]))
     assert "something touches the sensor" in text
+
+
+def test_run_refuses_a_learned_mesh_without_a_model_and_a_missing_plugins_dir(real_run, tmp_path):
+    plugins = str(real_run["plugin"].parent)
+    text = _clean_error(runner.invoke(app, ["run", "--sensor", "mini1", "--plugins-dir", plugins,
+                                            "--mesh", "learned", "--max-frames", "1"]))
+    assert "no learned model" in text and "--mesh physics" in text
+    text = _clean_error(runner.invoke(app, ["run", "--sensor", "mini1", "--plugins-dir",
+                                            str(tmp_path / "nowhere")]))
+    assert "--plugins-dir" in text and "not found" in text
+    text = _clean_error(runner.invoke(app, ["run", "--sensor", "mini1", "--plugins-dir", plugins,
+                                            "--mesh", "magic"]))
+    assert "learned, physics" in text
