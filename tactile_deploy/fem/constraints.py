@@ -49,6 +49,13 @@ class Supports(BaseModel):
 SENSOR_SUPPORTS = Supports()
 
 
+def family_supports(family) -> Supports:
+    """How a pad family (:class:`~tactile_deploy.pad.family.PadFamily`) holds its pad: a bonded
+    backplate is fixed (a sliding one on rollers), fixed sides are fixed."""
+    return Supports(backplate="fixed" if family.backplate == "bonded" else "rollers",
+                    side="fixed" if family.sides == "fixed" else "free")
+
+
 @dataclass(frozen=True)
 class DofMap:
     """Map between full nodal displacements and free generalised coordinates ``q``.

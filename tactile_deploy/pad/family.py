@@ -16,8 +16,7 @@ at the centre of the sensing surface, z out of the gel, mm):
 * where each number comes from (``sources``) and what had to be assumed (``assumptions``).
 
 :func:`PadFamily.geometry` gives the mesher's :class:`~tactile_deploy.pad.geometry.PadGeometry`,
-:func:`PadFamily.supports` the FEM's :class:`~tactile_deploy.fem.constraints.Supports`
-(imported lazily: the FEM is not needed to read a family). The shipped families are in
+:func:`tactile_deploy.fem.constraints.family_supports` the FEM's supports. The shipped families are in
 :data:`FAMILIES`; ``tactile_deploy/pad/asset.py`` freezes their meshes with a hash and a card.
 """
 
@@ -151,13 +150,6 @@ class PadFamily(BaseModel):
                            core_half_width_mm=0.5 * a.width_mm,
                            core_half_length_mm=0.5 * a.length_mm,
                            edge_growth=self.spacing_growth, **common)
-
-    def supports(self):
-        """The FEM supports (:class:`~tactile_deploy.fem.constraints.Supports`) of this pad."""
-        from tactile_deploy.fem.constraints import Supports
-
-        return Supports(backplate="fixed" if self.backplate == "bonded" else "rollers",
-                        side="fixed" if self.sides == "fixed" else "free")
 
 
 def depth_grid_over(area: SensingArea, pitch_mm: float) -> OutputGrid:

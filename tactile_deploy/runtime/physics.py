@@ -23,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.fem.constraints import family_supports
+from tactile_deploy.fem.depth_lift import DepthLift
+from tactile_deploy.pad.asset import load_pad
+from tactile_deploy.pad.family import FAMILIES
+from tactile_deploy.runtime.forces import ContactForces
 from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline, frame_to_mesh
+from tactile_deploy.runtime.plugins import PluginError
 from tactile_deploy.runtime.predictor import MeshPrediction, MeshTopology
 
 log = logging.getLogger(__name__)
@@ -43,8 +49,6 @@ class PhysicsForces:
 
     def estimate(self, vertices_mm: np.ndarray, clip_tension: bool = False,
                  pressure: bool = True):
-        from tactile_deploy.runtime.forces import ContactForces
-
         fn = self.predictor.forces_of(vertices_mm)
         if clip_tension:
             fn = np.maximum(fn, 0.0)
@@ -65,15 +69,11 @@ class PhysicsPredictor:
     """
 
     def __init__(self, plugin, pipeline: ImagingPipeline | None = None, iterations: int = 8):
-        from tactile_deploy.fem.depth_lift import DepthLift
-        from tactile_deploy.pad.asset import load_pad
-        from tactile_deploy.pad.family import FAMILIES
-
         m = plugin.manifest
         fam = m.family
         mesh = load_pad(fam.pad, fam.pad_version)
         family = FAMILIES.get(fam.pad)
-        supports = family.supports() if family is not None else None
+        supports = family_supports(family) if family is not None else None
         kwargs = {} if supports is None else {"supports": supports}
         self.lift = DepthLift(mesh, m.material.nu, m.material.E_mpa, **kwargs)
         self.plugin = plugin
@@ -144,8 +144,6 @@ class PhysicsPredictor:
 def choose_mesh_mode(plugin, requested: str | None) -> tuple[str, str | None]:
     """``(mode, note)``: the mesh mode for ``plugin`` given ``--mesh`` (None: learned when the
     plugin has a learned model, else physics, with a note saying so)."""
-    from tactile_deploy.runtime.plugins import PluginError
-
     has_model = plugin.manifest.model is not None or plugin.adapted_model_path() is not None
     if requested is None:
         if has_model:
