@@ -11,9 +11,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from tactile_deploy.atomic import write_json, write_npz
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.pad.family import FAMILIES, PadFamily
 from tactile_deploy.pad.geometry import GELSLIM_PAD, PadGeometry
 from tactile_deploy.pad.mesh import PadMesh, build_pad_mesh, content_hash
@@ -28,10 +29,10 @@ SHIPPED_PADS.update({name: (1, fam.geometry()) for name, fam in FAMILIES.items()
                      if name != "gelslim"})
 
 
-class PadCard(BaseModel):
+class PadCard(StrictModel):
     """Description of a frozen pad mesh (the JSON beside its .npz)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(frozen=False)  # built field by field when a pad is frozen
 
     format_version: int = Field(1, description="Version of this card's format.")
     name: str = Field(description="Pad name, e.g. 'gelslim'.")

@@ -25,18 +25,15 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.camera_mapping import OutputGrid
 from tactile_deploy.pad.geometry import PadGeometry
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-
-class SensingArea(BaseModel):
+class SensingArea(StrictModel):
     """Rectangle of the sensing surface seen by the camera (sensor frame, mm)."""
-
-    model_config = _STRICT
 
     x_min_mm: float = Field(description="Left edge, mm.")
     x_max_mm: float = Field(description="Right edge, mm.")
@@ -59,20 +56,16 @@ class SensingArea(BaseModel):
         return self.y_max_mm - self.y_min_mm
 
 
-class Source(BaseModel):
+class Source(StrictModel):
     """Where a number of the family comes from."""
-
-    model_config = _STRICT
 
     what: str = Field(description="The quantities taken from this source.")
     reference: str = Field(description="The source: a datasheet, paper, or repository file "
                            "(URL and, for code, the file path).")
 
 
-class PadFamily(BaseModel):
+class PadFamily(StrictModel):
     """A sensor design's pad (module docstring). Lengths in mm, sensor frame."""
-
-    model_config = _STRICT
 
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_]*$", description="Family and pad name.")
     description: str = Field(description="The sensor design in one line.")

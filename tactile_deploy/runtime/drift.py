@@ -17,17 +17,15 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from tactile_deploy.fileformat import StrictModel
 
 log = logging.getLogger(__name__)
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-
-class ReferenceRange(BaseModel):
+class ReferenceRange(StrictModel):
     """The no-contact image as the calibration saw it (grey levels)."""
-
-    model_config = _STRICT
 
     offset_grey_max: tuple[float, float, float] = Field(
         description="Largest |illumination offset| per channel (R, G, B) of the calibration's "

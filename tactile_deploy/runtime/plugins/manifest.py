@@ -5,7 +5,7 @@ its sha256: the shading model (``.npz``), the no-contact reference frame (PNG, r
 pixels), the noise reference (``.npy`` depth map on the model's grid), the demo clip (``.npz`` or
 a video) and, usually outside the folder, the ONNX model of the sensor family. Relative paths in
 a manifest are relative to the plugin folder. The committed JSON Schema is
-``tactile_deploy/runtime/manifest.schema.json`` (:mod:`tactile_deploy.runtime.schema`).
+``tactile_deploy/runtime/manifest.schema.json`` (``python -m tactile_deploy.formats`` rewrites it).
 """
 
 from __future__ import annotations
@@ -16,13 +16,12 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     ValidationError,
     model_validator,
 )
 
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.jsonfile import read_json, validation_error_text
 from tactile_deploy.runtime.drift import ReferenceRange
@@ -35,7 +34,6 @@ MANIFEST_NAME = "plugin.json"
 #: The depth grid every model of this project takes: +-17.5 mm, 128 x 128 (sensor frame).
 MODEL_GRID = OutputGrid()
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 _SHA256 = r"^[0-9a-f]{64}$"
 #: What a plugin name (and so a plugin folder's name) may be.
 NAME_PATTERN = r"^[a-z0-9][a-z0-9_\-]*$"
@@ -47,20 +45,16 @@ class PluginError(ValueError):
 
 
 # ------------------------------------------------------------------------------------ manifest
-class FileRef(BaseModel):
+class FileRef(StrictModel):
     """A file of the plugin and its checksum."""
-
-    model_config = _STRICT
 
     path: str = Field(min_length=1, description="File path, relative to the plugin folder "
                       "(POSIX separators) or absolute.")
     sha256: str = Field(pattern=_SHA256, description="sha256 of the file's bytes, lower-case hex.")
 
 
-class FamilySpec(BaseModel):
+class FamilySpec(StrictModel):
     """The sensor family: which pad mesh its model outputs."""
-
-    model_config = _STRICT
 
     name: str = Field(min_length=1, description="Family name, e.g. 'gelslim'.")
     pad: str = Field("gelslim", description="Shipped pad asset the model's vertices follow "
@@ -70,10 +64,8 @@ class FamilySpec(BaseModel):
                            "model's metadata must carry the same hash.")
 
 
-class MaterialSpec(BaseModel):
+class MaterialSpec(StrictModel):
     """The calibrated gel material used for contact forces."""
-
-    model_config = _STRICT
 
     E_mpa: float = Field(gt=0, le=1e4, description="Young's modulus, MPa (scales forces).")
     nu: float = Field(ge=0.0, lt=0.5, description="Poisson's ratio (sets the stiffness shape).")
@@ -89,10 +81,8 @@ class NoiseReferenceSpec(FileRef):
         "to its inputs, as in the paper's augmentation).")
 
 
-class PluginManifest(BaseModel):
+class PluginManifest(StrictModel):
     """``plugin.json``: everything the runtime needs to turn this sensor's frames into meshes."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     name: str = Field(pattern=NAME_PATTERN,
@@ -163,10 +153,6 @@ class PluginManifest(BaseModel):
             out["readout"] = self.readout
         return out
 
-
-def manifest_json_schema() -> dict:
-    """JSON Schema of ``plugin.json`` (field descriptions included)."""
-    return PluginManifest.model_json_schema()
 
 
 def load_manifest(path: str | os.PathLike) -> PluginManifest:
