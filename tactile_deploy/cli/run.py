@@ -59,7 +59,7 @@ def run_command(
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
     loop: bool = typer.Option(False, "--loop", help="Replay a recorded source endlessly (Ctrl-C ends)."),
     realtime: bool = typer.Option(False, "--realtime", help="Play recordings at their recorded pace."),
-    threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads."),
+    threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads (and numpy's BLAS threads)."),
     providers: str = typer.Option("auto", "--providers", help="onnxruntime execution providers: "
                                   "auto | cpu | cuda."),
     family_model: bool = typer.Option(False, "--family-model", help="Use the family model even "
@@ -227,8 +227,13 @@ def run_command(
     adapted = "adapted " if predictor.metadata.get("adapted") == "true" else ""
     err_console.print(f"running {plugin.name} on {src.name} with {predictor.providers[0]}, {adapted}model "
                       f"{model.as_posix()} (Ctrl-C to stop)")
+    from threadpoolctl import threadpool_limits
+
     try:
-        summary = runner.run()
+        # numpy's BLAS (read-out, forces) at --threads as well: its default pool beside onnxruntime's
+        # threads made the force stage 25x and the read-out 3x slower on a 2-core machine
+        with threadpool_limits(limits=threads, user_api="blas"):
+            summary = runner.run()
     except (SourceError, RunError) as e:
         if live:
             err_console.file.write("\n")
