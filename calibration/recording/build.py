@@ -61,7 +61,10 @@ def _target_folder(sensor: str, out: str | os.PathLike | None,
     if plugins_dir is not None:
         from tactile_deploy.runtime.plugin_dirs import check_plugins_dir
 
-        return check_plugins_dir(plugins_dir) / sensor
+        folder = Path(plugins_dir).expanduser()
+        if not folder.exists():  # a first plugin: make the folder of plugins (as mkdir -p)
+            folder.mkdir(parents=True)
+        return check_plugins_dir(folder) / sensor
     return Path(out) if out is not None else Path(sensor)
 
 
