@@ -45,19 +45,6 @@ TOLERANCE = {"offset_mm": 0.002, "scale": 0.003, "dx_mm": 0.03, "dy_mm": 0.03,
              "strength": 0.05, "delta_nu": 0.002}
 
 
-@pytest.fixture(scope="module")
-def small_sim():
-    from tactile_deploy.fem.material import Material
-    from tactile_deploy.fem.simulator import ContactSimulator
-    from tactile_deploy.pad.geometry import PadGeometry
-    from tactile_deploy.pad.mesh import build_pad_mesh
-
-    mesh = build_pad_mesh(PadGeometry(name="small", radius_mm=10.0, edge_mm=1.0, n_layers=4))
-    sim = ContactSimulator(mesh, Material(nu=0.48))
-    sim.prepare()
-    return sim
-
-
 def make_sensor(sim, effects=()) -> VirtualSensor:
     cfg = VirtualSensorConfig(name="small", family="gelslim", optics=OPTICS,
                               effects=tuple(effects))

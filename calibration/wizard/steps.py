@@ -838,6 +838,9 @@ def _default_source(ctx: Context) -> dict:
     return {"kind": "demo"}
 
 
+from calibration.wizard.step_discrepancy import step_discrepancy  # noqa: E402
+
 #: Step functions by name, in order.
 STEP_FUNCTIONS = {"reference": step_reference, "camera": step_camera, "presses": step_presses,
-                  "shading": step_shading, "fem": step_fem, "plugin": step_plugin}
+                  "shading": step_shading, "fem": step_fem, "plugin": step_plugin,
+                  "discrepancy": step_discrepancy}
