@@ -149,9 +149,12 @@ def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, s
     """One dataset through the workflow: the record of its verdict."""
     from calibration.discrepancy.workflow import find_discrepancy
 
-    maps, forces = ind.measured_maps(effect, params, contacts, clean, simulate,
-                                     camera.model_dump() if camera is not None else None,
-                                     NOISE_MM, rng)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as work:
+        maps, forces = ind.measured_maps(effect, params, contacts, clean, simulate,
+                                         camera.model_dump() if camera is not None else None,
+                                         NOISE_MM, rng, Path(work))
     data = measured_data(contacts, maps, clean_forces if forces is None else forces, rng,
                          f"independent {effect}")
     t0 = time.perf_counter()
@@ -267,8 +270,8 @@ columns: the verdict):
 
 {chr(10).join(per)}
 
-Tolerances: offsets 2 um, depth scale 0.003, position 0.03 mm, rotation 1 degree, dome 0.03 mm
-(the textbook dome only lowers each contact by the sag under its centre), Poisson ratio 0.003,
+Tolerances: offsets 2 um, depth scale 0.003, position 0.03 mm, rotation 1 degree, dome 0.03 mm,
+Poisson ratio 0.003,
 blur 0.03 mm, saturation slope 10 %; views (radial distortion of the map or of the image,
 pixel scale) by their displacement field over the pad within 9 mm of the centre: RMS error
 <= 0.01 mm or 10 % of the true field's RMS; gain fields: RMS error <= 0.01; sticking gel: a

@@ -30,8 +30,10 @@ Effects (textbook forms):
 * ``zero_offset``, ``depth_scale``, ``position_offset``, ``rotation_offset``: the rig reaches
   ``depth + offset``, ``depth (1 + s)``, ``(x + dx, y + dy)``, ``theta + dtheta`` while the
   commanded contact is recorded (clean simulations at the reached poses);
-* ``dome``: a gel whose surface sags ``h (r / 17.5)^2`` at radius r (either sign): a contact at
-  (x, y) meets it later by the sag under its centre (a clean simulation that much shallower);
+* ``dome``: a gel whose surface sags ``h (r / 17.5)^2`` at radius r (either sign): the gap
+  between indenter and gel grows by the sag under every point of the indenter, so a clean
+  simulation of the indenter's mesh with its pressing face moved away from the gel by the sag
+  there (the binary STL rewritten, large triangles subdivided first) is the domed contact;
 * ``poisson``: the gel's Poisson ratio off (a clean simulation at another ratio);
 * ``friction``: the gel sticks to the indenter (a clean simulation with sticking contact);
 * out of every library: ``banding`` (periodic stripes over the whole pad) and ``dust`` (a
@@ -41,7 +43,9 @@ Effects (textbook forms):
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -191,6 +195,86 @@ def dust(depth, height_mm: float, x_mm: float, y_mm: float, width_mm: float) -> 
     return np.asarray(depth, np.float64) + np.where(PAD, bump, 0.0)
 
 
+# -------------------------------------------------------------------------- the dome
+def read_stl(path) -> np.ndarray:
+    """Triangles (m, 3, 3) mm of a binary STL file."""
+    data = Path(path).read_bytes()
+    (m,) = struct.unpack("<I", data[80:84])
+    if len(data) != 84 + 50 * m:
+        raise ValueError(f"{path}: not a binary STL file ({len(data)} bytes for {m} triangles)")
+    rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    return np.frombuffer(data, rec, count=m, offset=84)["v"].astype(np.float64)
+
+
+def write_stl(path, triangles: np.ndarray) -> None:
+    tri = np.asarray(triangles, np.float64)
+    rec = np.zeros(len(tri), np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)),
+                                       ("attr", "<u2")]))
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    rec["n"] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    rec["v"] = tri
+    Path(path).write_bytes(b"\0" * 80 + struct.pack("<I", len(tri)) + rec.tobytes())
+
+
+def subdivide(triangles: np.ndarray, max_edge_mm: float, keep) -> np.ndarray:
+    """Triangles split in four (edge midpoints) until every edge of those ``keep(tri)`` selects
+    is at most ``max_edge_mm``."""
+    tri = np.asarray(triangles, np.float64)
+    for _ in range(12):
+        edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+        split = (edge > max_edge_mm) & keep(tri)
+        if not split.any():
+            return tri
+        t = tri[split]
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        new = np.concatenate([np.stack(q, axis=1) for q in
+                              ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+        tri = np.concatenate([tri[~split], new])
+    return tri
+
+
+def domed_mesh(src, dst, contact: Contact, height_mm: float, relief_mm: float = 2.5) -> float:
+    """Write to ``dst`` the indenter mesh ``src`` (binary STL, pressing face the top of the
+    file) whose pressing face is moved away from the gel by the sag of a domed gel under it at
+    ``contact``; returns the depth to simulate it at (the loader puts the new lowest point at
+    z = 0).
+
+    Frames (as documented for mesh indenters): the file is turned over, ``(x, y, z) -> (x, -y,
+    -z)``, its x, y bounding-box centre put at the origin and its lowest point at z = 0; the
+    contact's pose maps indenter points to the sensor frame, ``p = R(theta) q + (x, y)``."""
+    tri = read_stl(src)
+    v = tri.reshape(-1, 3)
+    cx = 0.5 * (v[:, 0].min() + v[:, 0].max())
+    cy = 0.5 * (v[:, 1].min() + v[:, 1].max())
+    top = v[:, 2].max()
+    # only the part near the pressing face needs the sag's curvature
+    tri = subdivide(tri, 0.4, lambda t: np.min(top - t[:, :, 2], axis=1) < relief_mm)
+    v = tri.reshape(-1, 3).copy()
+    qx, qy = v[:, 0] - cx, -(v[:, 1] - cy)
+    c, s = math.cos(math.radians(contact.theta_deg)), math.sin(math.radians(contact.theta_deg))
+    px, py = contact.x_mm + c * qx - s * qy, contact.y_mm + s * qx + c * qy
+    sag = height_mm * (px * px + py * py) / HALF_MM**2
+    z_ind = top - v[:, 2]
+    lowest = float(np.min(z_ind + sag))
+    v[:, 2] -= sag  # the face moves away from the gel (up in the indenter frame)
+    write_stl(dst, v.reshape(-1, 3, 3))
+    return contact.depth_mm - lowest
+
+
+def domed_contacts(contacts: list[Contact], height_mm: float, workdir) -> list[Contact]:
+    """The contacts with every indenter mesh rewritten for a domed gel (:func:`domed_mesh`)."""
+    out = []
+    for k, c in enumerate(contacts):
+        if not str(c.indenter).lower().endswith(".stl"):
+            raise ValueError(f"the dome is made by rewriting indenter meshes: {c.indenter!r} is "
+                             "not an STL file")
+        dst = Path(workdir) / f"domed_{k:03d}_{Path(c.indenter).stem}.stl"
+        depth = domed_mesh(c.indenter, dst, c, height_mm)
+        out.append(Contact(str(dst), c.x_mm, c.y_mm, c.theta_deg, depth))
+    return out
+
+
 # ------------------------------------------------------------------ contact and material
 def reached_contacts(contacts: list[Contact], effect: str, params: dict) -> list[Contact]:
     """The contacts the rig really makes when the commanded ones are ``contacts``."""
@@ -205,8 +289,6 @@ def reached_contacts(contacts: list[Contact], effect: str, params: dict) -> list
             x, y = x + params["dx_mm"], y + params["dy_mm"]
         elif effect == "rotation_offset":
             t = t + params["dtheta_deg"]
-        elif effect == "dome":
-            d = d - params["height_mm"] * (x * x + y * y) / HALF_MM**2
         else:
             raise ValueError(f"{effect!r} does not move the contact")
         out.append(Contact(c.indenter, x, y, t, d))
@@ -227,7 +309,7 @@ MAP_EFFECTS = {
     "dust": lambda d, p, cam: dust(d, p["height_mm"], p["x_mm"], p["y_mm"], p["width_mm"]),
 }
 #: Effects that change where the contact is.
-POSE_EFFECTS = ("zero_offset", "depth_scale", "position_offset", "rotation_offset", "dome")
+POSE_EFFECTS = ("zero_offset", "depth_scale", "position_offset", "rotation_offset")
 #: Effects that change the gel (simulated clean with another material or contact law).
 MATERIAL_EFFECTS = ("poisson", "friction")
 #: The effects the discrepancy library is expected to name (-> the candidate's name) and those
@@ -296,13 +378,15 @@ def draw(effect: str, rng: np.random.Generator) -> dict:
 
 def measured_maps(effect: str, params: dict, contacts: list[Contact], clean: np.ndarray,
                   simulate, camera: dict | None, noise_mm: float,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+                  rng: np.random.Generator, workdir: Path | None = None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """Depth maps (N, 128, 128) mm with ``effect`` and white pixel noise on the pad, and the
     forces (N,) N of contacts the effect changes (None: the clean ones).
 
     clean : (N, 128, 128) clean maps of ``contacts``. simulate(contacts, material) -> (maps,
     forces): clean simulations (``material``: None, ``{"delta_nu": ...}`` or ``{"friction":
     "stick"}``). camera : the plugin's camera-mapping JSON dict (for ``radial_image``).
+    workdir : a folder for the rewritten indenter meshes of the dome.
     """
     forces = None
     if effect == "none":
@@ -311,6 +395,10 @@ def measured_maps(effect: str, params: dict, contacts: list[Contact], clean: np.
         maps = np.stack([MAP_EFFECTS[effect](d, params, camera) for d in clean])
     elif effect in POSE_EFFECTS:
         maps, forces = simulate(reached_contacts(contacts, effect, params), None)
+    elif effect == "dome":
+        if workdir is None:
+            raise ValueError("the dome rewrites indenter meshes: give a workdir")
+        maps, forces = simulate(domed_contacts(contacts, params["height_mm"], workdir), None)
     elif effect == "poisson":
         maps, forces = simulate(contacts, {"delta_nu": params["delta_nu"]})
     elif effect == "friction":

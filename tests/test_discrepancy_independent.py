@@ -51,9 +51,10 @@ def test_independent_integration_and_views_are_exact_where_they_must_be():
     assert np.max(np.abs(back - z)) < 0.002 * z.max()
     dx, dy = ind.view_displacement("radial_map", {"k": 0.1, "cx_mm": 0.0, "cy_mm": 0.0}, None)
     # the point shown at p came from x_u with x_u (1 + k |x_u|^2 / 17.5^2) = p
-    i, j = np.unravel_index(np.argmin(np.abs(ind.X_MM - 10.0) + np.abs(ind.Y_MM)), ind.X_MM.shape)
-    xu = ind.X_MM[i, j] + dx[i, j]
-    assert xu * (1 + 0.1 * xu**2 / 17.5**2) == pytest.approx(ind.X_MM[i, j], abs=1e-9)
+    xu, yu = ind.X_MM + dx, ind.Y_MM + dy
+    f = 1 + 0.1 * (xu**2 + yu**2) / 17.5**2
+    assert np.max(np.abs(xu * f - ind.X_MM)[ind.PAD]) < 1e-9
+    assert np.max(np.abs(yu * f - ind.Y_MM)[ind.PAD]) < 1e-9
     scaled = ind.pixel_scale(z, 0.05, 0.05, integrated=False)
     expected = 0.4 * np.exp(-((1.05 * ind.X_MM) ** 2 + (1.05 * ind.Y_MM - 2.0) ** 2)
                             / (2 * 1.5**2))
@@ -101,3 +102,29 @@ def test_effect_made_outside_is_named_with_its_parameters(setup, effect, seed):
     if entry["expected"] not in ("none", "unexplained"):
         assert entry["parameters_ok"], entry["errors"]
         assert entry["gap_after_mm"] <= 0.5 * entry["gap_before_mm"]
+
+
+@pytest.mark.parametrize("name,height_mm", [("sphere", 0.3), ("prism", -0.25)])
+def test_independent_dome_agrees_with_the_dome_effect(pad_sim, shared_data, tmp_path, name,
+                                                      height_mm):
+    """Two implementations of a domed gel: the product's (the gel's rest surface lowered by the
+    sag, in the FEM) and the independent one (the indenter's mesh rewritten, clean simulation):
+    the same maps to 0.1 um (the effect itself: 40-120 um)."""
+    from tactile_deploy.indenters import ContactPose
+    from tactile_deploy.sensors.catalog import sensor_config
+    from tactile_deploy.sensors.config import EffectSpec
+
+    cfg = sensor_config("gelslim1")
+    flat = VirtualSensor(cfg, simulator=pad_sim)
+    domed = VirtualSensor(cfg.model_copy(update={"effects": (EffectSpec(
+        name="dome", params={"height_mm": height_mm}),)}), simulator=pad_sim)
+    c = ind.Contact(str(shared_data / "indenters" / f"{name}.stl"), 4.0, -5.0, 35.0, 0.6)
+    (rewritten,) = ind.domed_contacts([c], height_mm, tmp_path)
+    pose = ContactPose(x_mm=c.x_mm, y_mm=c.y_mm, theta_deg=c.theta_deg, depth_mm=c.depth_mm)
+    effect, f_effect = domed.depth_map(c.indenter, pose)
+    independent, f_ind = flat.depth_map(rewritten.indenter, pose.model_copy(
+        update={"depth_mm": rewritten.depth_mm}))
+    nominal, _ = flat.depth_map(c.indenter, pose)
+    assert np.abs(effect - nominal).max() > 0.03
+    assert np.abs(effect - independent).max() < 1e-4
+    assert f_ind == pytest.approx(f_effect, rel=1e-3)
