@@ -22,6 +22,7 @@ import numpy as np
 
 from tactile_deploy.adapt.card import FILTER_FILE, STEP_FILE, AdaptationCard, CardError, load_card
 from tactile_deploy.adapt.weights import INSTALL_HINT, AdaptationUnavailable
+from tactile_deploy.safe_torch import weights_only_loads
 
 
 def require_torch():
@@ -68,7 +69,8 @@ class StepProgram:
             raise AdaptationUnavailable("--device cuda was asked for, but this torch has no CUDA device; use "
                                         "--device cpu or install a CUDA build of torch")
         try:
-            program = torch.export.load(str(path))
+            with weights_only_loads():       # no code from the file runs (docs/adaptation.md)
+                program = torch.export.load(str(path))
         except Exception as e:  # torch raises several types for damaged or foreign files
             raise CardError(f"{path}: torch cannot load the step program ({type(e).__name__}: {e}); it was "
                             f"exported with torch {card.versions.get('torch')}, this is torch {torch.__version__}: "

@@ -27,6 +27,10 @@ class VideoSource(FrameSource):
         self._n = 0
         self._pos = 0
 
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop or not self._n else self._n
+
     def _open(self) -> None:
         import cv2
 
@@ -38,6 +42,7 @@ class VideoSource(FrameSource):
             raise SourceError(f"{self.name}: OpenCV cannot open it (unknown container or codec); "
                               "convert it to .mp4 (mp4v) or record a .npz clip instead")
         self._fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self._n = max(int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)   # container's count
         self._pos = 0
 
     def _read(self) -> Frame | None:

@@ -71,6 +71,10 @@ class VirtualSensorSource(FrameSource):
         self._sensor = None
         self._k = 0
 
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop else self.n_frames
+
     def _open(self) -> None:
         try:
             from tactile_deploy.sensors import load_sensor
