@@ -82,9 +82,14 @@ def clean_simulator(sensor):
         sim = sensor.simulator if mat == base else get_simulator(mat, sensor.config.pad)
         maps, forces = [], []
         for c in contacts:
-            s = simulate_contact(get_indenter(c.indenter),
-                                 ContactPose(x_mm=c.x_mm, y_mm=c.y_mm, theta_deg=c.theta_deg,
-                                             depth_mm=c.depth_mm), mat, simulator=sim)
+            try:
+                s = simulate_contact(get_indenter(c.indenter),
+                                     ContactPose(x_mm=c.x_mm, y_mm=c.y_mm, theta_deg=c.theta_deg,
+                                                 depth_mm=c.depth_mm), mat, simulator=sim)
+            except RuntimeError:  # the solver did not settle: that contact is left out
+                maps.append(np.full((128, 128), np.nan))
+                forces.append(np.nan)
+                continue
             maps.append(s.depth_mm.astype(np.float64))
             forces.append(s.force_n)
         return np.stack(maps), np.array(forces)
@@ -155,14 +160,19 @@ def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, s
         maps, forces = ind.measured_maps(effect, params, contacts, clean, simulate,
                                          camera.model_dump() if camera is not None else None,
                                          NOISE_MM, rng, Path(work))
-    data = measured_data(contacts, maps, clean_forces if forces is None else forces, rng,
+    forces = clean_forces if forces is None else forces
+    ok = np.flatnonzero(np.all(np.isfinite(maps), axis=(1, 2)))
+    data = measured_data([contacts[i] for i in ok], maps[ok], np.asarray(forces)[ok], rng,
                          f"independent {effect}")
+    if len(ok) < len(contacts):
+        tables = tables.subset(ok)
     t0 = time.perf_counter()
     v = find_discrepancy(sensor, data, opts, tables=tables).verdict
     entry = {"effect": effect, "truth": params, "label": label(v),
              "expected": ind.EXPECTED.get(effect, "none"), "parameters": v.parameters,
              "gap_before_mm": v.gap_before_mm, "gap_after_mm": v.gap_after_mm,
-             "explained": v.explained_fraction, "time_s": time.perf_counter() - t0}
+             "explained": v.explained_fraction, "time_s": time.perf_counter() - t0,
+             "contacts_left_out": len(contacts) - len(ok)}
     if v.verdict == "effect" and effect in ind.EXPECTED and v.effect == ind.EXPECTED[effect]:
         entry["parameters_ok"], entry["errors"] = parameter_check(effect, params, v, camera)
     return entry

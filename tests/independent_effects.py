@@ -384,7 +384,7 @@ def measured_maps(effect: str, params: dict, contacts: list[Contact], clean: np.
     forces (N,) N of contacts the effect changes (None: the clean ones).
 
     clean : (N, 128, 128) clean maps of ``contacts``. simulate(contacts, material) -> (maps,
-    forces): clean simulations (``material``: None, ``{"delta_nu": ...}`` or ``{"friction":
+    forces): clean simulations (NaN maps for contacts it could not make) (``material``: None, ``{"delta_nu": ...}`` or ``{"friction":
     "stick"}``). camera : the plugin's camera-mapping JSON dict (for ``radial_image``).
     workdir : a folder for the rewritten indenter meshes of the dome.
     """
@@ -406,6 +406,8 @@ def measured_maps(effect: str, params: dict, contacts: list[Contact], clean: np.
     else:
         raise ValueError(f"unknown effect {effect!r}")
     noisy = np.where(PAD, maps + rng.normal(0.0, noise_mm, np.shape(maps)), 0.0)
+    # a contact the simulation could not make stays NaN (left out by the caller)
+    noisy[~np.all(np.isfinite(maps), axis=(1, 2))] = np.nan
     return noisy.astype(np.float32), forces
 
 

@@ -188,6 +188,16 @@ class ResponseTables:
                 return t
         raise KeyError(name)
 
+    def subset(self, index) -> ResponseTables:
+        """The tables of the contacts ``index`` (ints), in that order."""
+        idx = [int(i) for i in index]
+        tables = [dataclasses.replace(t, deltas=[t.deltas[i] for i in idx], forces=t.forces[idx],
+                                      usable=t.usable[idx]) for t in self.tables]
+        return ResponseTables([self.contacts[i] for i in idx], self.base[idx],
+                              self.base_force[idx], [self.roi[i] for i in idx],
+                              [self.nuisance[i] for i in idx], tables,
+                              None if self.noise_maps is None else self.noise_maps[idx])
+
     def project(self, i: int, values: np.ndarray) -> np.ndarray:
         """Remove contact i's nuisance subspace from ``values`` (..., n_roi)."""
         q = self.nuisance[i]

@@ -68,6 +68,12 @@ EXPLAIN_MIN = 0.75
 #: candidate with large-deformation solves only when it is the best).
 REFINE_MIN_SHARE = 0.2
 REFINE_CANDIDATES = 4
+#: With measured frames every refined value is an imaged map (a rendered frame through the
+#: pipeline, 6 noise draws): only the best candidate is refined before the selection.
+REFINE_CANDIDATES_FRAMES = 1
+#: Rounds of re-centring at most (depth maps, measured frames).
+REFINE_ROUNDS = 8
+REFINE_ROUNDS_FRAMES = 3
 
 
 @dataclass
@@ -300,12 +306,14 @@ def refine_candidates(repro: ContactReproducer, tables: ResponseTables, stats, n
         reductions.append((red, t.name))
     reductions.sort(reverse=True)
     out = {}
-    for rank, (red, name) in enumerate(reductions[:REFINE_CANDIDATES]):
+    for rank, (red, name) in enumerate(
+            reductions[:REFINE_CANDIDATES_FRAMES if frames else REFINE_CANDIDATES]):
         table = tables.table(name)
         if red < REFINE_MIN_SHARE * units or (table.candidate.route == "nonlinear" and rank):
             continue
         new, _, rounds = refine_table(repro, tables, table, depth, sample_contact, frames,
-                                      workers=workers)
+                                      workers=workers, max_rounds=REFINE_ROUNDS_FRAMES if frames
+                                      else REFINE_ROUNDS)
         tables.tables[tables.tables.index(table)] = new
         out[name] = rounds
         if advance is not None:
@@ -359,8 +367,10 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     # the tables, held at its joint fit)
     extra = _second_change(tables, selection, sample_contact)
     coords = best.coords if extra is None else selection.pair["coords"][0]
-    table, coords, _ = refine_table(repro, tables, table, depth, sample_contact,
-                                    repro.imaging is not None, extra, opts.workers, start=coords)
+    frames = repro.imaging is not None
+    table, coords, _ = refine_table(repro, tables, table, depth, sample_contact, frames, extra,
+                                    opts.workers, start=coords,
+                                    max_rounds=REFINE_ROUNDS_FRAMES if frames else REFINE_ROUNDS)
     A, b = fit_stats(tables, table, depth, sample_contact, extra)
     span = np.array([hi - lo for lo, hi in table.bounds])
     fitter = TableFit(table)
