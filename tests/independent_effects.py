@@ -148,8 +148,14 @@ def radial_image_points(k1: float, camera: dict) -> tuple[np.ndarray, np.ndarray
     und_real = cv2.undistortPoints(raw, K, real, P=K,
                                    criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
                                              100, 1e-12)).reshape(-1, 2)
+    # where the real lens cannot be inverted (far outside the frame) the point stays where it is
+    back, _ = cv2.projectPoints(np.concatenate([(und_real - K[:2, 2]) / np.diag(K)[:2],
+                                                np.ones((len(und_real), 1))], axis=1
+                                               ).reshape(-1, 1, 3),
+                                np.zeros(3), np.zeros(3), K, real)
+    ok = np.linalg.norm(back.reshape(-1, 2) - raw.reshape(-1, 2), axis=1) < 1e-3
     q = np.concatenate([und_real, np.ones((len(und_real), 1))], axis=1) @ H.T
-    q = q[:, :2] / q[:, 2:3]
+    q = np.where(ok[:, None], q[:, :2] / q[:, 2:3], p[:, :2])
     return q[:, 0].reshape(X_MM.shape), q[:, 1].reshape(X_MM.shape)
 
 
