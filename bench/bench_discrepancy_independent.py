@@ -1,7 +1,7 @@
 """The discrepancy workflow on effects made by code outside the product: confusion matrix,
 naming accuracy, false positives, parameter recovery.
 
-    tactile-deploy bench discrepancy -- --independent [--seeds 5] [--contacts 40] [--null 4]
+    tactile-deploy bench discrepancy --independent [--seeds 5] [--contacts 40] [--null 4]
         [--effects a,b,...] [--no-write]
 
 Measured data: per seed, commanded contacts of five of the shared indenter meshes
@@ -263,7 +263,7 @@ def summarise(res: dict) -> tuple[str, dict]:
     n_lib = max(len(library), 1)
     acc = named / n_lib
     fpr = fp / max(len(null), 1)
-    text = f"""## Discrepancy workflow on effects made outside the product (`tactile-deploy bench discrepancy -- --independent`)
+    text = f"""## Discrepancy workflow on effects made outside the product (`tactile-deploy bench discrepancy --independent`)
 
 {machine_line()}; whole benchmark {res['wall_s'] / 60:.0f} min, load average
 {res['load_average'][2]:.1f} over its last 15 min (the machine is shared). Sensor model

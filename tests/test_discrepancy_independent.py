@@ -1,5 +1,5 @@
 """The discrepancy workflow on effects made outside the product (small form of ``tactile-deploy
-bench discrepancy -- --independent``).
+bench discrepancy --independent``).
 
 Measured data: the clean depth maps of a small pad's virtual sensor (r 10 mm, 1,735 nodes; the
 ``simulate`` output of that pad: no effects), 16 commanded contacts (spheres, a punch, a lying
