@@ -2,11 +2,17 @@
 few parameter values and interpolated between them.
 
 For every contact the sensor model's map (the *base*) is simulated once, and for every candidate
-the map at each of its tabulated values (3 per fitted coordinate, a 3 x 3 grid for two). A
-candidate's change of the map at any coordinates ``phi`` is the quadratic (tensor) Lagrange
-interpolation of the tabulated changes::
+the map at each of its tabulated values (3 per fitted coordinate: a 3 x 3 grid for two, a
+*star* for three or more: the middle value and one either side along each coordinate). A
+candidate's change of the map at any coordinates ``phi`` is the quadratic Lagrange interpolation
+of the tabulated changes (tensor product on a grid; on a star the sum of the changes along each
+coordinate, an additive model that the refinement re-centres until it is exact at the fit)::
 
-    sim(phi) - base  ~=  sum_k L_k(phi) (sim(node_k) - base)
+    sim(phi) - base  ~=  sum_k w_k(phi) (sim(node_k) - base)
+
+Maps are those of :meth:`ContactReproducer.depth_map`: a candidate that changes only the view or
+the read-out reuses the contact's FEM solution. :func:`recentre_table` tabulates a candidate
+again around a fit (:mod:`calibration.discrepancy.refine`).
 
 Everything is kept on each contact's region of interest (ROI): the pad pixels where the base map
 or any tabulated change exceeds ``ROI_THRESHOLD_MM``, dilated by ``ROI_DILATE_PX``; outside it
@@ -16,7 +22,8 @@ exactly.
 
 With measured frames (the reproducer has an imaging path, :mod:`calibration.discrepancy.imaging`)
 every tabulated map is an imaged map: the base, the candidates' values (optical ones included:
-the variant's frame through the calibrated pipeline, no view warp) and the exact re-simulations;
+the variant's frame through the calibrated pipeline, no view; read-out ones: the imaged map with
+the read-out applied) and the exact re-simulations;
 the ROI starts from the FEM surface's change (an imaged map is nowhere exactly flat), and each
 contact keeps noise realisations of its imaged base (``noise_maps``).
 
