@@ -187,7 +187,7 @@ def test_redo_resume_and_config_checks(wizard_copy):
                   "--config", cfg, "--out", out, "--yes", "--redo", "fem")
     assert res.exit_code == 0, res.output
     after = work.load()
-    assert "step 5/6" in res.output and "step 4/6" not in res.output
+    assert "step 5/7" in res.output and "step 4/7" not in res.output
     for step in ("reference", "camera", "presses", "shading"):
         assert after.steps[step] == before.steps[step]
     assert (out / "plugin.json").is_file()
