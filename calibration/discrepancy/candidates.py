@@ -56,7 +56,9 @@ class Candidate:
     fit_offsets : per coordinate the (lower, upper) range a fit may reach from the current value.
     route : see the module docstring. refine_coords : coordinates added when the table is
     re-centred, with their node offsets and fit half-ranges. frames_refine : whether they are
-    fitted with measured frames too (False: frames render the effect without them). fixed :
+    fitted with measured frames too (False: the frames render the effect without them, or each
+    of their values would cost seven imaged maps a contact per round: a dome's apex stays at
+    the model's value with frames). fixed :
     parameter values of the first tabulation (instead of the defaults). needs_commanded : the
     effect moves the contact itself. needs_non_round : only indenters that are not bodies of
     revolution show it. signature : what it does to a depth map (for the report). nodes :
@@ -267,7 +269,7 @@ CANDIDATES: tuple[Candidate, ...] = (
               signature="a plane across each contact (one side deeper), slope the same for all"),
     Candidate("dome", ("height_mm",), ((-0.25, 0.5),), ((-0.5, 0.8),),
               refine_coords=("centre_x_mm", "centre_y_mm"), refine_offsets=(1.5, 1.5),
-              refine_fit=(4.0, 4.0),
+              refine_fit=(4.0, 4.0), frames_refine=False,
               signature="contacts shallower (domed gel) or deeper (dished) toward the rim, by "
                         "the sag there"),
     # one-sided at 0.05 and 1: the small strength fixes the slope at the null value in a few
