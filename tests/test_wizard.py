@@ -373,7 +373,8 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)
     cfg = {**CONFIG, "reference": {"n_frames": 3}, "presses": {"n_presses": 8},
            "shading": {"folds": 0}, "fem": {"enabled": False},
-           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)}}
+           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)},
+           "discrepancy": {"n_presses": 0}}   # the clip holds no frames for more presses
     (tmp_path / "cfg.json").write_text(json.dumps(cfg))
     grid = crop_camera_mapping(640, 480, mm_per_px, crop).grid
     plan = plan_presses(grid, 3.0, 8, (0.3, 0.9), 0)
