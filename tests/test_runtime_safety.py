@@ -64,7 +64,7 @@ def test_publish_binds_to_loopback_unless_told_otherwise(given, bound):
 def test_publisher_on_a_bare_port_listens_on_loopback_only(predictor_topology=None):
     import socket
 
-    from tactile_deploy.runtime.predictor import MeshTopology
+    from tactile_deploy.pad.topology import MeshTopology
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

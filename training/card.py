@@ -6,22 +6,21 @@ import hashlib
 import json
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.onnx_runtime.contract import DEPTH_DOC, FRAME, SENSOR_FAMILY
 
 CARD_FORMAT = 1
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-class PadInfo(_Strict):
+class PadInfo(StrictModel):
     name: str
     mesh_hash: str = Field(description="sha256 of the frozen pad mesh (vertex order contract).")
     n_nodes: int
 
 
-class FileInfo(_Strict):
+class FileInfo(StrictModel):
     onnx: str = Field(description="The shipped graph.")
     onnx_sha256: str
     onnx_mb: float
@@ -29,7 +28,7 @@ class FileInfo(_Strict):
     card_json: str
 
 
-class ModelCard(_Strict):
+class ModelCard(StrictModel):
     format_version: int = CARD_FORMAT
     name: str
     variant: str
@@ -70,8 +69,6 @@ INTENDED_USE = [
 def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds, graph_file=None,
                int8_calibration=None) -> dict:
     """The card of graph ``out`` (its bytes read from ``graph_file``, default ``out``)."""
-    from training.export import DEPTH_DOC, FRAME, SENSOR_FAMILY
-
     cfg = bundle["config"]
     m = bundle["metrics"]
     out = Path(out)

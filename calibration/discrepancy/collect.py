@@ -28,28 +28,33 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from calibration.rig.indent import PressRecord, check_press_depth
+from tactile_deploy.fileformat import STRICT, StrictModel
 
 #: Version of :class:`CollectionLog`.
 LOG_FORMAT_VERSION = 1
 
 
-class PlannedContact(BaseModel):
+#: The strict base, with no type coercion either (a string where a number goes is refused).
+_NO_COERCION = ConfigDict(**STRICT, strict=True)
+
+
+class PlannedContact(StrictModel):
     """One commanded contact, sensor frame."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+    model_config = _NO_COERCION
 
     x_mm: float = Field(description="Contact x, sensor frame, mm.")
     y_mm: float = Field(description="Contact y, sensor frame, mm.")
     depth_mm: float = Field(gt=0.0, description="Depth below the gel surface, mm.")
 
 
-class CollectionLog(BaseModel):
+class CollectionLog(StrictModel):
     """The rig's record of a collection (stored in the .npz as ``rig_log``, JSON)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+    model_config = _NO_COERCION
 
     format_version: Literal[1] = LOG_FORMAT_VERSION
     indenter: str = Field(description="Indenter pressed: library name or mesh path.")

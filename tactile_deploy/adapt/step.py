@@ -20,8 +20,10 @@ from typing import Callable
 
 import numpy as np
 
-from tactile_deploy.adapt.card import FILTER_FILE, STEP_FILE, AdaptationCard, CardError, load_card
+from tactile_deploy.adapt.card import AdaptationCard, CardError, load_card
 from tactile_deploy.adapt.weights import INSTALL_HINT, AdaptationUnavailable
+from tactile_deploy.checksums import file_sha256
+from tactile_deploy.onnx_runtime.session import make_session
 from tactile_deploy.safe_torch import weights_only_loads
 
 
@@ -35,8 +37,6 @@ def require_torch():
 
 
 def _verified(card: AdaptationCard, folder: Path, key: str) -> Path:
-    from tactile_deploy.checksums import file_sha256
-
     path = card.path(folder, key)
     if not path.is_file():
         raise CardError(f"{folder}: the card names {key} file {path}, which does not exist; restore it or "
@@ -90,7 +90,6 @@ class StepProgram:
 
     def check_family_model(self, model_path: str | Path) -> None:
         """Refuse a family model other than the one the step was exported with."""
-        from tactile_deploy.checksums import file_sha256
 
         actual = file_sha256(model_path)
         expected = self.card.files["family_model"].sha256
@@ -129,13 +128,8 @@ class StepProgram:
     # -- the filter ----------------------------------------------------------------------------
     def filter_session(self):
         if self._filter is None:
-            import onnxruntime as ort
-
             path = _verified(self.card, self.folder, "filter")
-            so = ort.SessionOptions()
-            so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
-            so.log_severity_level = 3
-            self._filter = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            self._filter = make_session(path, threads=1, providers="cpu")
         return self._filter
 
 

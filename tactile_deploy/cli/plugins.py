@@ -130,14 +130,15 @@ def plugins_copy(
 def plugins_schema(out: Path | None = typer.Option(None, help="Write to this file instead of "
                                                       "printing.")) -> None:
     """Print (or write) the JSON Schema of plugin.json."""
-    from tactile_deploy.runtime.schema import schema_text
+    from tactile_deploy.fileformat import schema_text
+    from tactile_deploy.runtime.plugins import PluginManifest
 
     if out is None:
-        typer.echo(schema_text(), nl=False)
+        typer.echo(schema_text(PluginManifest), nl=False)
         return
     if out.exists():
         fail(f"{out} exists; choose another file name")
     from tactile_deploy.atomic import write_text
 
-    write_text(out, schema_text())
+    write_text(out, schema_text(PluginManifest))
     console.print(f"wrote {out}")

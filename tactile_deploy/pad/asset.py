@@ -11,23 +11,25 @@ import json
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from tactile_deploy.atomic import write_json, write_npz
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.pad.geometry import GELSLIM_PAD, PadGeometry
 from tactile_deploy.pad.mesh import PadMesh, build_pad_mesh, content_hash
 from tactile_deploy.pad.quality import quality_report
+from tactile_deploy.shipped import asset_dir
 
-ASSET_DIR = Path(__file__).resolve().parent.parent / "assets" / "pads"
+ASSET_DIR = asset_dir("pads")
 
 #: Pads we ship: name -> (version, geometry).
 SHIPPED_PADS: dict[str, tuple[int, PadGeometry]] = {"gelslim": (1, GELSLIM_PAD)}
 
 
-class PadCard(BaseModel):
+class PadCard(StrictModel):
     """Description of a frozen pad mesh (the JSON beside its .npz)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(frozen=False)  # built field by field when a pad is frozen
 
     format_version: int = Field(1, description="Version of this card's format.")
     name: str = Field(description="Pad name, e.g. 'gelslim'.")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.atomic import atomic_path
 from tactile_deploy.runtime.sources.base import Frame, FrameSource, SourceError
 
 
@@ -75,8 +76,6 @@ class VideoSource(FrameSource):
 def write_video(path: str | os.PathLike, frames, fps: float = 30.0, fourcc: str = "mp4v") -> Path:
     """Write RGB frames (N, H, W, 3) uint8 as a video file (atomic). Returns the path."""
     import cv2
-
-    from tactile_deploy.atomic import atomic_path
 
     frames = np.asarray(frames)
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:

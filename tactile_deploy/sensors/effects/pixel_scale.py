@@ -35,6 +35,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
+from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 
@@ -79,7 +80,6 @@ class PixelScale(Effect):
     def optics(self, model):
         if self.is_null:
             return model
-        from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 
         cam = model.camera
         stretch = self.stretch_px(cam.intrinsics.cx_px, cam.intrinsics.cy_px)
