@@ -69,8 +69,10 @@ EXPLAIN_MIN = 0.75
 REFINE_MIN_SHARE = 0.2
 REFINE_CANDIDATES = 4
 #: With measured frames every refined value is an imaged map (a rendered frame through the
-#: pipeline, 6 noise draws): only the best candidate is refined before the selection.
-REFINE_CANDIDATES_FRAMES = 1
+#: pipeline, 6 noise draws): the best two candidates are refined before the selection (with the
+#: best alone, a zero offset that explains half of a domed gel's gap before any refinement left
+#: the dome's table where its first fit, a third of the height, put it).
+REFINE_CANDIDATES_FRAMES = 2
 #: Rounds of re-centring at most (depth maps, measured frames).
 REFINE_ROUNDS = 8
 REFINE_ROUNDS_FRAMES = 3
