@@ -76,6 +76,7 @@ class SolveSettings:
     max_newton: int = 8  # Newton steps per multiplier update
     step_tol: float = 1e-9  # Newton converged when the largest step is below this x depth
     rho_factor: float = 3000.0  # multiplier-update stiffness relative to mu * area / edge
+    step_strain: float = 0.1  # load-step depth as a fraction of the pad thickness (large strain)
     pcg_rtol: float = 1e-12  # relative residual of the preconditioned CG solves
     pcg_max: int = 40  # CG iterations before the Newton matrix is factored afresh
 
@@ -133,6 +134,7 @@ class IntrusionField:
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         return np.asarray(self.fn(np.asarray(xy, np.float64)), np.float64)
 
+    @np.errstate(invalid="ignore")
     def with_gradient(self, xy: np.ndarray):
         """(delta (k,), grad (k, 2)) by central differences (one-sided at a footprint edge)."""
         xy = np.asarray(xy, np.float64)
@@ -334,7 +336,7 @@ class _Solve:
         mat = solver.material
         self.geometric = solver.model != "linear"
         self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu)
-        self.dofs = build_dof_map(mesh, solver.supports)
+        self.dofs = _dof_map(mesh, solver.supports)
         n_plane = mesh.n_plane
         X = mesh.vertices[:n_plane]
         # Candidate sensing nodes: near the footprint.
@@ -371,6 +373,7 @@ class _Solve:
         self.t_T = np.zeros((n_plane, 3))  # tangential traction multipliers (friction)
         self.friction = mat.friction
         self.mu_f = mat.mu
+        self.lift = 0.0  # the indenter raised by this much (mm) during load steps
         self._factor = None
         self.factorizations = 0
         self.pcg_iterations = 0
@@ -382,6 +385,7 @@ class _Solve:
         p = X[nodes] + u[nodes]
         xy = p[:, :2] if self.geometric else X[nodes, :2]
         d, grad = self.field.with_gradient(xy)
+        d = d - self.lift
         covered = np.isfinite(d)
         gap_n = np.where(covered, -d - p[:, 2], np.inf)
         w_n = np.zeros((len(nodes), 3, 3))
@@ -398,7 +402,7 @@ class _Solve:
             which, bary = locate_in_triangles(self.ind_xy, locate_xy)
             corners = tris[which]
             z_gel = np.einsum("qa,qa->q", bary, P[which, :, 2])
-            gap_p = self.ind_z - z_gel
+            gap_p = self.ind_z + self.lift - z_gel
             w_p = np.zeros((len(which), 3, 3))
             w_p[:, :, 2] = -bary
             if self.geometric:
@@ -541,9 +545,23 @@ class _Solve:
             self.pcg_iterations += count[0]
             if info == 0:
                 return x
-        self._factor = SparseCholesky(Kq)
+        # A fresh factor; where large compression makes the tangent indefinite, a shifted one
+        # (the step is then a descent direction the line search can shorten).
+        diag = sp.diags(Kq.diagonal())
+        for shift in (0.0, 1e-3, 1e-2, 1e-1, 1.0):
+            try:
+                self._factor = SparseCholesky(Kq + shift * diag if shift else Kq)
+                break
+            except ValueError:
+                continue
+        else:
+            raise TruthSolveError("Newton matrix not positive definite even when shifted")
         self.factorizations += 1
         x = self._factor.solve(b)
+        if shift:
+            M = spla.LinearOperator(Kq.shape, matvec=self._factor.solve, dtype=float)
+            y, info = spla.cg(Kq, b, x0=x, rtol=st.pcg_rtol, atol=0.0, maxiter=st.pcg_max, M=M)
+            x = y if info == 0 and np.all(np.isfinite(y)) else x
         if not np.all(np.isfinite(x)):
             raise TruthSolveError("Newton system singular (an element is close to inverting)")
         return x
@@ -570,14 +588,26 @@ class _Solve:
         return u + t * du, t, float(np.abs(gq).max()), float(np.abs(du).max())
 
     def run(self) -> TruthSolution:
+        """Load steps (the indenter lowered in equal depth increments, large deformation only),
+        each solved to the tolerances."""
         st = self.s.settings
-        n = self.mesh.n_nodes
-        u = np.zeros((n, 3))
+        u = np.zeros((self.mesh.n_nodes, 3))
+        depth = max(float(np.max(self.field(self.mesh.vertices[self.cand_nodes, :2]), initial=0.0)),
+                    1e-3)
+        n_steps = 1
+        if self.geometric:
+            n_steps = max(1, math.ceil(depth / (st.step_strain * self.s.geometry.thickness_mm)))
+        history = []
+        for k in range(1, n_steps + 1):
+            self.lift = depth * (1.0 - k / n_steps)
+            u, c, lam, it = self._solve_step(u, depth, history)
+        return self._solution(u, c, lam, it, history)
+
+    def _solve_step(self, u, depth, history):
+        st = self.s.settings
         rho = self.rho()
         normals = self.indenter_normals(u)
-        fn = np.zeros(self.n_plane)
-        history = []
-        scale_mm = max(float(np.max(self.field(self.mesh.vertices[self.cand_nodes, :2]), initial=0.0)), 1e-3)
+        fn = self.normal_forces(self.constraints(u), self.multipliers())
         newton = 0
         for it in range(1, st.max_iterations + 1):
             lam = self.multipliers()
@@ -585,7 +615,7 @@ class _Solve:
             for _ in range(st.max_newton):  # minimise the augmented energy for these multipliers
                 u, t, res, du_max = self._newton_step(u, lam, rho, bound, normals)
                 newton += 1
-                if t == 1.0 and du_max <= st.step_tol * scale_mm:
+                if t == 1.0 and du_max <= st.step_tol * depth:
                     break
             c = self.constraints(u)
             lam_new = np.maximum(0.0, lam - rho * c.gap)
@@ -605,13 +635,11 @@ class _Solve:
             fn = fn_new
             history.append((newton, pen, change))
             if pen <= st.penetration_tol_mm and change <= st.force_tol:
-                break
-        else:
-            raise TruthSolveError(
-                f"contact iterations did not converge in {st.max_iterations} multiplier updates "
-                f"({newton} Newton steps): penetration {pen * 1e3:.3g} um, nodal force change "
-                f"{change:.2g} of the total")
-        return self._solution(u, c, lam_new, it, history)
+                return u, c, lam_new, it
+        raise TruthSolveError(
+            f"contact iterations did not converge in {st.max_iterations} multiplier updates "
+            f"({newton} Newton steps, indenter {self.lift:.3g} mm above its final depth): "
+            f"penetration {pen * 1e3:.3g} um, nodal force change {change:.2g} of the total")
 
     def _solution(self, u, c, lam, it, history) -> TruthSolution:
         n_plane = self.n_plane
@@ -642,6 +670,22 @@ class _Solve:
                   "factorizations": self.factorizations, "pcg_iterations": self.pcg_iterations,
                   "n_constraints": len(c.gap), "h_fine_mm": self.h_fine},
         )
+
+
+def _dof_map(mesh: PadMesh, supports: Supports):
+    """The free-coordinate map of ``mesh``; for the sensor's supports (bonded backplate, free
+    sides) a plain selection of the free nodes' x, y, z, built directly."""
+    if supports != SENSOR_SUPPORTS:
+        return build_dof_map(mesh, supports)
+    from tactile_deploy.fem.constraints import DofMap
+
+    n = mesh.n_nodes
+    free = np.setdiff1d(np.arange(n), mesh.backplate_nodes)
+    rows = (3 * free[:, None] + np.arange(3)).ravel()
+    T = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(3 * n, len(rows)))
+    return DofMap(T=T, node_of_col=np.repeat(free, 3),
+                  direction_of_col=np.tile(np.eye(3), (len(free), 1)),
+                  z_col=np.full(n, -1), xy_cols=np.full((n, 2), -1))
 
 
 def _triangle_slopes(P: np.ndarray) -> np.ndarray:

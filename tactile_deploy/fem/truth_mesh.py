@@ -67,11 +67,15 @@ class TruthMesh(PadMesh):
 
 
 def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: float,
-                     h_coarse_mm: float = 2.0, growth: float = 1.35) -> TruthMesh:
+                     h_coarse_mm: float = 2.0, growth: float = 1.2,
+                     surface_nodes_xy: np.ndarray | None = None) -> TruthMesh:
     """A pad mesh refined over ``region_xy`` (k, 2) mm (points where contact can occur).
 
     ``h_fine_mm``: edge length over the region; ``h_coarse_mm``: the largest edge length;
-    ``growth``: 1 + the increase of the edge length per mm of distance from the region.
+    ``growth``: 1 + the increase of the edge length per mm of distance from the region;
+    ``surface_nodes_xy`` (k, 2): points of the sensing surface that must be nodes (an
+    indenter's tip). The centres of the sensing surface and of the backplate are always nodes
+    (so that a uniform expansion leaves the centre in place: the pins of rolling supports).
     """
     import gmsh
 
@@ -101,10 +105,25 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
             occ.addBox(-0.5 * geometry.width_mm, -0.5 * geometry.length_mm, -h,
                        geometry.width_mm, geometry.length_mm, h)
         occ.synchronize()
+        top_tag = bottom_tag = None
+        for dim, tag in gmsh.model.getEntities(2):
+            _, _, z0, _, _, z1 = gmsh.model.getBoundingBox(dim, tag)
+            if abs(z0) < 1e-4 * h and abs(z1) < 1e-4 * h:
+                top_tag = tag
+            elif abs(z0 + h) < 1e-4 * h and abs(z1 + h) < 1e-4 * h:
+                bottom_tag = tag
+        geo = gmsh.model.geo
+        extra = [] if surface_nodes_xy is None else [tuple(p) for p in np.reshape(surface_nodes_xy, (-1, 2))]
+        top_points = [occ.addPoint(x, y, 0.0) for x, y in [(0.0, 0.0)] + extra]
+        bottom_points = [occ.addPoint(0.0, 0.0, -h)]
+        occ.synchronize()
+        gmsh.model.mesh.embed(0, top_points, 2, top_tag)
+        gmsh.model.mesh.embed(0, bottom_points, 2, bottom_tag)
+        del geo
         gmsh.model.mesh.setSizeCallback(size)
         for name, value in (("Mesh.MeshSizeExtendFromBoundary", 0), ("Mesh.MeshSizeFromPoints", 0),
                             ("Mesh.MeshSizeFromCurvature", 0), ("Mesh.Algorithm", 6),
-                            ("Mesh.Algorithm3D", 1), ("Mesh.Optimize", 1), ("Mesh.OptimizeNetgen", 1),
+                            ("Mesh.Algorithm3D", 1), ("Mesh.Optimize", 1),
                             ("Mesh.MaxNumThreads1D", 1), ("Mesh.MaxNumThreads2D", 1),
                             ("Mesh.MaxNumThreads3D", 1)):
             gmsh.option.setNumber(name, value)
@@ -133,7 +152,8 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
     # Snap the surfaces exactly (gmsh's coordinates carry round-off).
     top = np.unique(top_tris)
     xyz[top, 2] = 0.0
-    bottom = np.unique(np.concatenate(bottom))
+    # Every node on the backplate plane (embedded points are not listed with the surface).
+    bottom = np.unique(np.concatenate(bottom + [np.flatnonzero(np.abs(xyz[:, 2] + h) < 1e-6 * h)]))
     xyz[bottom, 2] = -h
     wall = np.unique(np.concatenate(wall))
     # Renumber: sensing nodes first, the others in gmsh's order.
@@ -151,9 +171,14 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
 
     vol = signed_volumes(vertices, tets)
     tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]
-    if geometry.shape == "disc":  # rim nodes exactly on the circle
-        r = np.hypot(vertices[new[wall], 0], vertices[new[wall], 1])
-        vertices[new[wall], :2] *= (geometry.radius_mm / r)[:, None]
+    w = new[wall]
+    if geometry.shape == "disc":  # wall nodes exactly on the cylinder
+        r = np.hypot(vertices[w, 0], vertices[w, 1])
+        vertices[w, :2] *= (geometry.radius_mm / r)[:, None]
+    else:  # and on the box's planes
+        for axis, half in ((0, 0.5 * geometry.width_mm), (1, 0.5 * geometry.length_mm)):
+            on = np.abs(np.abs(vertices[w, axis]) - half) < 1e-6 * half
+            vertices[w[on], axis] = np.sign(vertices[w[on], axis]) * half
     g = geometry.model_copy(update={"name": f"{geometry.name}_truth"})
     return TruthMesh(geometry=g, vertices=vertices, tets=tets.astype(np.int32),
                      plane_triangles=tris.astype(np.int32), n_sensing=len(top),
