@@ -151,3 +151,18 @@ def test_float16_storage_is_float32_rounded_to_half_precision(tmp_path, pad_sim)
         np.testing.assert_array_equal(a["force_n"], b["force_n"])
     bad = run(*common, "--storage", "float8", "--out", tmp_path / "bad")
     assert bad.exit_code != 0 and "storage" in bad.output
+
+
+def test_mesh_file_indenters_are_recorded_so_they_can_be_simulated_again(shared_data):
+    import hashlib
+
+    from tactile_deploy.simulation.contact import indenter_record
+
+    path = sorted((shared_data / "indenters").glob("*.stl"))[0]
+    ind = get_indenter(path, pressing_face="top")
+    rec = indenter_record(ind)
+    assert rec["indenter"] == str(path.resolve()) and rec["indenter_name"] == path.stem
+    assert rec["indenter_sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    again = get_indenter(rec["indenter"], pressing_face=rec["pressing_face"])
+    assert again.content_hash == ind.content_hash
+    assert indenter_record(get_indenter("sphere_r4")) == {"indenter": "sphere_r4", "indenter_kind": "primitive"}

@@ -39,6 +39,7 @@ Units: mm, MPa, N. The solution is computed at the given E (forces scale with E)
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -53,6 +54,8 @@ from tactile_deploy.fem.sparse_solver import SparseCholesky
 from tactile_deploy.fem.truth_mesh import build_truth_mesh
 from tactile_deploy.pad.geometry import PadGeometry
 from tactile_deploy.pad.mesh import PadMesh
+
+log = logging.getLogger(__name__)
 
 #: Largest fine spacing of a truth mesh: the depth-camera pixel (35 mm / 128).
 H_FINE_MAX_MM = 0.27
@@ -78,7 +81,8 @@ class SolveSettings:
     rho_factor: float = 3000.0  # multiplier-update stiffness relative to mu * area / edge
     step_strain: float = 0.1  # load-step depth as a fraction of the pad thickness (large strain)
     pcg_rtol: float = 1e-12  # relative residual of the preconditioned CG solves
-    pcg_max: int = 40  # CG iterations before the Newton matrix is factored afresh
+    pcg_max: int = 150  # CG iterations before the preconditioner is factored afresh
+    precond_bulk: float = 0.15  # bulk term of the preconditioner, fraction of the bulk modulus
 
 
 @dataclass
@@ -254,7 +258,15 @@ class TruthSolver:
             # The fine region: the footprint grown by 3 fine spacings (lateral slide, rim).
             margin = max(3.0 * h_fine_mm, 0.3)
             region_xy = _dilate(pts, margin, h_fine_mm)
-        mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm)
+        tip = deepest_point(field_, pts, self.geometry)
+        # A sharp tip (the intrusion bends by more than 0.3 in slope across it): triangles
+        # around it a quarter of the fine spacing, so their chords follow a cone's flanks.
+        probe = 0.025
+        ring = tip + probe * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
+        sharp = float(field_(tip[None])[0] - np.mean(field_(ring))) > 0.3 * probe
+        spots = [(float(tip[0]), float(tip[1]), 0.25 * h_fine_mm)] if sharp else []
+        mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
+                                surface_nodes_xy=tip[None], point_sizes=spots)
         return mesh, h_fine_mm, pts
 
     def solve(self, indenter, pose, **kwargs) -> TruthSolution:
@@ -273,6 +285,23 @@ class TruthSolver:
             if h_fine_mm is None:
                 h_fine_mm = float(np.sqrt(mesh.sensing_nodal_areas_mm2().min() * 2.0))
         return _Solve(self, mesh, field_, h_fine_mm, fp, features).run()
+
+
+def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,
+                  pitch_mm: float = 0.005) -> np.ndarray:
+    """The sensor-frame point (2,) mm where the indenter reaches deepest (a cone's tip), found
+    on the footprint grid ``fp`` and refined on a ``pitch_mm`` grid around it. The truth mesh
+    puts a node there, so that a tip rests on a node rather than inside a triangle."""
+    d = field_(fp)
+    best = fp[int(np.argmax(d))]
+    step = float(np.min(np.abs(np.diff(np.unique(fp[:, 0]))))) if len(np.unique(fp[:, 0])) > 1 else 0.05
+    xs = best[0] + np.arange(-step, step + pitch_mm / 2, pitch_mm)
+    ys = best[1] + np.arange(-step, step + pitch_mm / 2, pitch_mm)
+    grid = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    grid = grid[geometry.contains_xy(grid[:, 0], grid[:, 1], margin_mm=0.05)]
+    if len(grid) == 0:
+        return best
+    return grid[int(np.argmax(field_(grid)))]
 
 
 def _dilate(points: np.ndarray, margin: float, pitch: float) -> np.ndarray:
@@ -375,6 +404,7 @@ class _Solve:
         self.mu_f = mat.mu
         self.lift = 0.0  # the indenter raised by this much (mm) during load steps
         self._factor = None
+        self._M0 = None
         self.factorizations = 0
         self.pcg_iterations = 0
 
@@ -493,7 +523,8 @@ class _Solve:
 
     # -------------------------------------------------------------------------- Newton
     def gradient_and_hessian(self, u, lam, rho, bound, normals):
-        f_int, K = self.gel.forces_and_stiffness(u)
+        f_int, K_mat = self.gel.forces_and_stiffness(u)
+        K = sp.csr_matrix(K_mat.shape)
         c = self.constraints(u)
         a = np.maximum(0.0, lam - rho * c.gap)
         n3 = 3 * self.mesh.n_nodes
@@ -524,56 +555,70 @@ class _Solve:
             rows = np.repeat(node_dofs, 3, axis=1).ravel()
             cols = np.tile(node_dofs, (1, 3)).ravel()
             K = K + sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n3, n3))
-        return grad, K.tocsr(), c, a
+        return grad, (K_mat, K.tocsr()), c, a
 
-    def _linear_solve(self, Kq: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
-        """Solve ``Kq x = b``: conjugate gradients preconditioned by the Cholesky factor of an
-        earlier Newton matrix (the contact set and the tangent change little between steps);
-        a fresh factor when that takes more than ``pcg_max`` iterations."""
+    def _preconditioner_base(self) -> sp.csr_matrix:
+        """Narrow-stencil stand-in for the material stiffness: linear tets with the bulk term
+        per element at ``precond_bulk`` of the bulk modulus (the locking-free stiffness's wide
+        stencil makes its own factor ~10x dearer; this one is spectrally close)."""
+        if self._M0 is None:
+            from tactile_deploy.fem.elasticity import (
+                _scatter_element_matrices,
+                element_stiffness,
+                shape_gradients,
+            )
+
+            lam, mu = self.s.material.lame_mpa
+            kappa = lam + 2.0 * mu / 3.0
+            g, V = shape_gradients(self.mesh.vertices, self.mesh.tets)
+            ke = element_stiffness(g, V, -2.0 * mu / 3.0 + self.s.settings.precond_bulk * kappa, mu)
+            M = _scatter_element_matrices(ke, self.mesh.tets, self.mesh.n_nodes)
+            T = self.dofs.T
+            self._M0 = (T.T @ M @ T).tocsr()
+        return self._M0
+
+    def _linear_solve(self, Kq: sp.csr_matrix, b: np.ndarray, extra_q: sp.csr_matrix) -> np.ndarray:
+        """Solve ``Kq x = b`` by conjugate gradients, preconditioned by the Cholesky factor of
+        the narrow-stencil stiffness plus this step's contact and friction terms (kept while
+        CG converges within ``pcg_max`` iterations, refactored otherwise)."""
         import scipy.sparse.linalg as spla
 
         st = self.s.settings
-        if self._factor is not None:
-            M = spla.LinearOperator(Kq.shape, matvec=self._factor.solve, dtype=float)
+        for attempt in range(2):
+            if self._factor is None or attempt == 1:
+                M = self._preconditioner_base() + extra_q
+                self._factor = SparseCholesky(M)
+                self.factorizations += 1
+            P = spla.LinearOperator(Kq.shape, matvec=self._factor.solve, dtype=float)
             count = [0]
 
             def cb(_):
                 count[0] += 1
 
-            x, info = spla.cg(Kq, b, rtol=st.pcg_rtol, atol=0.0, maxiter=st.pcg_max, M=M,
+            x, info = spla.cg(Kq, b, rtol=st.pcg_rtol, atol=0.0, maxiter=st.pcg_max, M=P,
                               callback=cb)
             self.pcg_iterations += count[0]
-            if info == 0:
+            if info == 0 and np.all(np.isfinite(x)):
                 return x
-        # A fresh factor; where large compression makes the tangent indefinite, a shifted one
-        # (the step is then a descent direction the line search can shorten).
+        # CG did not converge with a fresh preconditioner: the tangent is indefinite (large
+        # compression); a direct solve of the shifted system still gives a descent step.
         diag = sp.diags(Kq.diagonal())
         for shift in (0.0, 1e-3, 1e-2, 1e-1, 1.0):
             try:
-                self._factor = SparseCholesky(Kq + shift * diag if shift else Kq)
-                break
+                return SparseCholesky(Kq + shift * diag if shift else Kq).solve(b)
             except ValueError:
                 continue
-        else:
-            raise TruthSolveError("Newton matrix not positive definite even when shifted")
-        self.factorizations += 1
-        x = self._factor.solve(b)
-        if shift:
-            M = spla.LinearOperator(Kq.shape, matvec=self._factor.solve, dtype=float)
-            y, info = spla.cg(Kq, b, x0=x, rtol=st.pcg_rtol, atol=0.0, maxiter=st.pcg_max, M=M)
-            x = y if info == 0 and np.all(np.isfinite(y)) else x
-        if not np.all(np.isfinite(x)):
-            raise TruthSolveError("Newton system singular (an element is close to inverting)")
-        return x
+        raise TruthSolveError("Newton matrix not positive definite even when shifted")
 
     def _newton_step(self, u, lam, rho, bound, normals):
         """One Newton step with line search on the augmented energy (multipliers fixed).
         Returns (new u, step length, relative force residual before the step)."""
         T = self.dofs.T
-        grad, K, _, _ = self.gradient_and_hessian(u, lam, rho, bound, normals)
+        grad, (K_mat, K_extra), _, _ = self.gradient_and_hessian(u, lam, rho, bound, normals)
         gq = T.T @ grad
-        Kq = (T.T @ K @ T).tocsr()
-        step = self._linear_solve(Kq, -gq)
+        extra_q = (T.T @ K_extra @ T).tocsr()
+        Kq = (T.T @ K_mat @ T).tocsr() + extra_q
+        step = self._linear_solve(Kq, -gq, extra_q)
         du = (T @ step).reshape(-1, 3)
         m0 = self.merit(u, lam, rho, bound, normals)
         slope = float(gq @ step)
@@ -634,6 +679,9 @@ class _Solve:
             change = float(np.abs(fn_new - fn).max()) / total
             fn = fn_new
             history.append((newton, pen, change))
+            log.debug("step lift %.4f mm, update %d: %d Newton steps, penetration %.3g um, force "
+                      "change %.2g, factorizations %d, PCG %d", self.lift, it, newton, pen * 1e3,
+                      change, self.factorizations, self.pcg_iterations)
             if pen <= st.penetration_tol_mm and change <= st.force_tol:
                 return u, c, lam_new, it
         raise TruthSolveError(
@@ -717,7 +765,7 @@ def surface_penetration(sol: TruthSolution, field_: IntrusionField, pitch_mm: fl
         tris = tri[near[tri].any(axis=1)]
         loc = P[tris][:, :, :2] if geometric else X[tris][:, :, :2]
         which, bary = locate_in_triangles(fp, loc)
-        z_gel = np.einsum("qa,qa->q", bary, P[tris[which], :, 2])
+        z_gel = np.einsum("qa,qa->q", bary, P[tris[which]][:, :, 2])
         inside = bary.min(axis=1) > -1e-9
         out.append(np.where(inside, z_gel + field_(fp), -np.inf))
     xy = P[:, :2] if geometric else X[:, :2]

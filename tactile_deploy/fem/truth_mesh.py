@@ -68,13 +68,15 @@ class TruthMesh(PadMesh):
 
 def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: float,
                      h_coarse_mm: float = 2.0, growth: float = 1.2,
-                     surface_nodes_xy: np.ndarray | None = None) -> TruthMesh:
+                     surface_nodes_xy: np.ndarray | None = None,
+                     point_sizes: list[tuple[float, float, float]] = ()) -> TruthMesh:
     """A pad mesh refined over ``region_xy`` (k, 2) mm (points where contact can occur).
 
     ``h_fine_mm``: edge length over the region; ``h_coarse_mm``: the largest edge length;
     ``growth``: 1 + the increase of the edge length per mm of distance from the region;
     ``surface_nodes_xy`` (k, 2): points of the sensing surface that must be nodes (an
-    indenter's tip). The centres of the sensing surface and of the backplate are always nodes
+    indenter's tip); ``point_sizes``: (x, y, size) triples, finer spots on the sensing surface
+    (around a sharp tip) whose size grows by ``growth`` from there. The centres of the sensing surface and of the backplate are always nodes
     (so that a uniform expansion leaves the centre in place: the pins of rolling supports).
     """
     import gmsh
@@ -91,7 +93,11 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
             return h_coarse_mm
         d, _ = tree.query((x, y))
         d = ((max(d - 0.5 * h_fine_mm, 0.0)) ** 2 + z * z) ** 0.5
-        return min(h_coarse_mm, h_fine_mm + (growth - 1.0) * d)
+        out = min(h_coarse_mm, h_fine_mm + (growth - 1.0) * d)
+        for px, py, ps in point_sizes:
+            dp = ((x - px) ** 2 + (y - py) ** 2 + z * z) ** 0.5
+            out = min(out, ps + (growth - 1.0) * dp)
+        return out
 
     gmsh.initialize(readConfigFiles=False)
     try:
