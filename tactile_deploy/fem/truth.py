@@ -60,7 +60,7 @@ log = logging.getLogger(__name__)
 #: Largest fine spacing of a truth mesh: the depth-camera pixel (35 mm / 128).
 H_FINE_MAX_MM = 0.27
 #: Fine spacing relative to the equivalent radius of the indenter's footprint.
-H_FINE_PER_RADIUS = 1.0 / 8.0
+H_FINE_PER_RADIUS = 1.0 / 10.0
 #: Smallest fine spacing.
 H_FINE_MIN_MM = 0.05
 
