@@ -24,7 +24,8 @@ def run(*args):
 
 def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
     out = tmp_path / "one.npz"
-    result = run("simulate", "--indenter", "flat_punch", "--x", 2, "--y", -1, "--depth", 0.5, "--out", out)
+    result = run("simulate", "--indenter", "flat_punch", "--x", 2, "--y", -1, "--depth", 0.5,
+                 "--model", "linear", "--out", out)
     assert result.exit_code == 0, result.output
     with np.load(out) as d:
         assert d["depth"].shape == (128, 128) and d["depth"].dtype == np.float32
@@ -43,6 +44,8 @@ def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
         y = 17.5 - (rows.mean() + 0.5) * 35 / 128
         assert x == pytest.approx(2.0, abs=0.3) and y == pytest.approx(-1.0, abs=0.3)
         assert np.abs(depth[:20]).max() < 0.01 * 0.5  # 13 mm away the gel has moved < 1 % of d
+        assert meta["model"] == "linear" and meta["max_penetration_mm"] < 1e-5
+        assert d["stick_mask"].shape == d["contact_mask"].shape and not d["stick_mask"].any()
     again = run("simulate", "--indenter", "flat_punch", "--depth", 0.5, "--out", out)
     assert again.exit_code != 0 and "--overwrite" in " ".join(again.output.split())
 
