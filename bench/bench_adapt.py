@@ -13,7 +13,7 @@ Measures, in one run:
   exported program), and the renderer's share of the step;
 * **renderer**: the step's fixed-shape differentiable renderer (the training module the program
   was captured from) against the batched rasteriser
-  of the simulator (:class:`tactile_deploy.camera.depth_torch.TorchDepthCamera`, no gradient,
+  of the simulator (:class:`training.simulation.depth_torch.TorchDepthCamera`, no gradient,
   variable shapes), forward at batch 16;
 * **200 frames**: ``tactile-deploy adapt`` on a copy of the plugin fed ``--frames`` frames of its
   virtual sensor (frames rendered beforehand, not timed): imaging, filter, held-out split,
@@ -155,7 +155,7 @@ def main(argv=None) -> int:
     step_med = statistics.median(step_s)
 
     # renderer share and the simulator's rasteriser as baseline (forward, no gradient)
-    from tactile_deploy.camera.depth_torch import TorchDepthCamera
+    from training.simulation.depth_torch import TorchDepthCamera
     from tactile_deploy.pad.asset import load_pad
 
     pad = load_pad()

@@ -252,7 +252,7 @@ def run_virtual_wizard(config, folder: Path) -> tuple[dict, object, object, obje
     from rich.console import Console
 
     from calibration.wizard.state import WorkFolder
-    from calibration.wizard.steps import load_camera, load_reference
+    from calibration.wizard.work_data import load_camera, load_reference
     from calibration.wizard.ui import AutoUI
     from calibration.wizard.wizard import EXIT_OK, run_wizard
 
@@ -288,13 +288,10 @@ def virtual_accuracy(small: bool = False) -> dict:
         virtual_ball_presses,
         virtual_shape_presses,
     )
-    from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.steps import (
-        finetune_readout_on_presses,
-        press_profiles,
-        rectifier_for,
-        shading_fit_config,
-    )
+    from calibration.wizard.config import shading_fit_config, wizard_config_from_dict
+    from calibration.wizard.press_data import press_profiles
+    from calibration.wizard.unit_readout import finetune_readout_on_presses
+    from calibration.wizard.work_data import rectifier_for
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.imaging.learned_readout import LearnedReadout
     from tactile_deploy.imaging.poisson import poisson_solver

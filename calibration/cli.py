@@ -12,7 +12,7 @@ from __future__ import annotations
 import typer
 
 from calibration.camera.cli import camera_app
-from calibration.fem_fit.cli import fem_app
+from calibration.fem_command import fem_app
 from calibration.shading.cli import shading_app
 from calibration.wizard.cli import calibrate_callback
 

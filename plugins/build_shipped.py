@@ -356,13 +356,9 @@ def relink_model(folder: Path, model: Path) -> dict:
     """Point an existing plugin at a re-exported family model: check the model's contract and
     mesh hash, then record its path and sha256 in ``plugin.json`` (nothing else changes)."""
     from tactile_deploy.atomic import write_json
-    from tactile_deploy.runtime.plugins import (
-        MANIFEST_NAME,
-        PluginManifest,
-        file_sha256,
-        load_manifest,
-    )
-    from tactile_deploy.runtime.predictor import check_model_contract
+    from tactile_deploy.runtime.plugins import MANIFEST_NAME, PluginManifest, load_manifest
+    from tactile_deploy.checksums import file_sha256
+    from tactile_deploy.onnx_runtime.contract import check_model_contract
 
     manifest = load_manifest(folder)
     check_model_contract(model, manifest.family.mesh_hash, what=f"model for {manifest.name}")

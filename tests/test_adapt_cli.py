@@ -109,7 +109,7 @@ def test_the_committed_step_belongs_to_the_shipped_model():
 
     from tactile_deploy.adapt.step import StepProgram
     from tactile_deploy.checksums import file_sha256
-    from tactile_deploy.runtime.predictor import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
     step = StepProgram.load(STEP)
     card = step.card

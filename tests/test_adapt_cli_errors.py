@@ -46,8 +46,8 @@ def _cli(*args):
 
 def _version(folder, model=FAMILY):
     """A version made by copying ``model`` (no adaptation), made active."""
-    from tactile_deploy.adapt.versions import add_version, staging_folder
     from tactile_deploy.runtime.plugins import SensorPlugin
+    from tactile_deploy.runtime.plugins.versions import add_version, staging_folder
 
     plugin = SensorPlugin.load(folder)
     stage = staging_folder(plugin)
@@ -76,7 +76,12 @@ def test_the_gate_judges_the_written_model_against_the_start_and_the_active_one(
     it), computed independently here; a --from-family run worse than the active version writes
     nothing and says so with both figures."""
     from tactile_deploy.adapt.step import StepProgram, evaluate, vae_filter
-    from tactile_deploy.adapt.workflow import collect_depths, evaluate_model, split_blocks, view_weight
+    from tactile_deploy.adapt.workflow import (
+        collect_depths,
+        evaluate_model,
+        split_blocks,
+        view_weight,
+    )
     from tactile_deploy.pad.asset import load_pad
     from tactile_deploy.runtime.plugins import SensorPlugin
     from tactile_deploy.runtime.sources.config import parse_source
@@ -194,7 +199,7 @@ def test_checks_that_need_no_frames_come_before_collecting_them(plugin_copy, tmp
         args += ["--device", "cuda:abc"]
         expect = "--device must be cpu, cuda or cuda:N (N: the index of a CUDA device), got 'cuda:abc'"
     else:
-        from tactile_deploy.adapt import versions
+        from tactile_deploy.runtime.plugins import versions
 
         real = versions.os.access  # root writes anywhere: the plugin folder says it is read-only
         monkeypatch.setattr(versions.os, "access", lambda path, mode, **k: Path(path) != plugin_copy and real(path, mode, **k))
@@ -205,9 +210,9 @@ def test_checks_that_need_no_frames_come_before_collecting_them(plugin_copy, tmp
 
 
 def test_a_camera_refusing_every_frame_stops(plugin_copy, monkeypatch):
+    from tactile_deploy.adapt import workflow
     from tactile_deploy.adapt.workflow import collect_depths
     from tactile_deploy.runtime.plugins import SensorPlugin
-    from tactile_deploy.runtime.sources import factory
     from tactile_deploy.runtime.sources.base import Frame
 
     class Camera:  # live, endless, frames of the wrong size
@@ -226,7 +231,7 @@ def test_a_camera_refusing_every_frame_stops(plugin_copy, monkeypatch):
             return Frame(image=np.zeros((7, 9, 3), np.uint8), index=self.index, t_wall_ns=0, t_mono_ns=0)
 
     camera = Camera()
-    monkeypatch.setattr(factory, "make_source", lambda *a, **k: camera)
+    monkeypatch.setattr(workflow, "make_source", lambda *a, **k: camera)
     logged = []
     with pytest.raises(ValueError, match="camera 0: 50 frames in a row were refused by the imaging pipeline"):
         collect_depths(SensorPlugin.load(plugin_copy), None, max_frames=40, log=logged.append)
@@ -274,8 +279,7 @@ def test_activate_makes_a_kept_version_active_and_rollback_returns(plugin_copy):
 
 
 def test_an_interrupted_add_leaves_no_version_folder(plugin_copy, monkeypatch):
-    from tactile_deploy.adapt import versions
-    from tactile_deploy.runtime.plugins import SensorPlugin
+    from tactile_deploy.runtime.plugins import SensorPlugin, versions
 
     plugin = SensorPlugin.load(plugin_copy)
     stage = versions.staging_folder(plugin)

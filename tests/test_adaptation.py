@@ -128,7 +128,7 @@ def test_adaptation_recovers_a_planted_shift_and_the_onnx_model_follows(tmp_path
     initializers) gives the adapted program's meshes."""
     from tactile_deploy.adapt.step import AdaptSettings, StepProgram, adapt, evaluate
     from tactile_deploy.adapt.weights import read_adapted_weights, write_adapted_onnx
-    from tactile_deploy.runtime.predictor import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
     program = StepProgram.load(ROOT / "exported" / "gelslim_mesh_adapt")
     depth = _maps(8, 1)
@@ -178,7 +178,7 @@ def tiny_plugin(tiny, tmp_path):
 
 
 def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
-    from tactile_deploy.adapt.versions import (
+    from tactile_deploy.runtime.plugins.versions import (
         add_version,
         load_history,
         rollback,
@@ -221,7 +221,7 @@ def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
 
 
 def test_a_version_of_another_family_model_is_not_used_and_a_changed_one_is_refused(tiny, tiny_plugin):
-    from tactile_deploy.adapt.versions import add_version, history_path, staging_folder
+    from tactile_deploy.runtime.plugins.versions import add_version, history_path, staging_folder
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
 
     plugin = SensorPlugin.load(tiny_plugin)

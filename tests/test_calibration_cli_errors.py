@@ -209,7 +209,7 @@ def test_fem_refuses_unknown_indenters_while_reading(tmp_path):
 
 
 def test_fem_contacts_with_byte_order_mark(tmp_path):
-    from calibration.fem_fit.cli import read_contacts
+    from calibration.fem_command import read_contacts
 
     path = _contacts(tmp_path, "z.npy,sphere_r4,0,0,0.5,0.3")
     path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())

@@ -71,8 +71,8 @@ torch = pytest.importorskip("torch")
 
 def _tiny_network(tmp_path, metadata_update=None):
     from tactile_deploy.imaging import learned_readout as lr
-    from training.shading_net.network import ReadoutNet
-    from training.shading_net.train import export_onnx
+    from tactile_deploy.learning.readout_network import ReadoutNet
+    from tactile_deploy.learning.readout_network import export_onnx
 
     torch.manual_seed(0)
     net = ReadoutNet(4).eval()
@@ -86,7 +86,7 @@ def _tiny_network(tmp_path, metadata_update=None):
 
 
 def test_exported_graph_matches_the_network_on_any_grid_size(tmp_path):
-    from training.shading_net.network import DEPTH_UNIT_MM
+    from tactile_deploy.learning.readout_network import DEPTH_UNIT_MM
 
     net, path = _tiny_network(tmp_path)
     readout = LearnedReadout(path)
@@ -158,7 +158,8 @@ def test_depth_gain_recovers_a_planted_scale():
 @pytest.fixture(scope="module")
 def gelslim2_with_readout(tmp_path_factory):
     """The shipped gelslim2 plugin with the exported read-out added to its manifest (a copy)."""
-    from tactile_deploy.runtime.plugins import SensorPlugin, file_sha256
+    from tactile_deploy.runtime.plugins import SensorPlugin
+    from tactile_deploy.checksums import file_sha256
 
     src = ROOT / "plugins" / "gelslim2"
     folder = tmp_path_factory.mktemp("plugins") / "gelslim2"
@@ -233,8 +234,8 @@ def test_network_from_onnx_gives_back_the_exported_network(tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
-    from training.shading_net.finetune import network_from_onnx
-    from training.shading_net.network import DEPTH_UNIT_MM
+    from tactile_deploy.learning.readout_finetuning import network_from_onnx
+    from tactile_deploy.learning.readout_network import DEPTH_UNIT_MM
 
     _, path = _tiny_network(tmp_path)
     net = network_from_onnx(path)
@@ -255,8 +256,8 @@ def test_network_from_onnx_gives_back_the_exported_network(tmp_path):
 def test_finetuning_moves_a_network_to_a_planted_one(tmp_path):
     """Fine-tuning a network on the outputs of another (planted) network brings its depth on
     held-out inputs much closer to the planted one's."""
-    from training.shading_net.finetune import finetune_network, network_from_onnx
-    from training.shading_net.network import DEPTH_UNIT_MM, ReadoutNet
+    from tactile_deploy.learning.readout_finetuning import finetune_network, network_from_onnx
+    from tactile_deploy.learning.readout_network import DEPTH_UNIT_MM, ReadoutNet
 
     torch.manual_seed(7)
     planted = ReadoutNet(4).eval()

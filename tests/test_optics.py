@@ -273,15 +273,14 @@ def test_real_gelsight_presses_held_out_error(shared_data):
     reference frame alone (the figures of docs/optics.md come from the full fit)."""
     from calibration.optics_fit import (
         FOTS_BALL_RADIUS_MM,
-        FOTS_FREE,
         SurfaceParameters,
-        _held_out_errors,
         fit_optics,
         fots_camera,
         fots_initial_model,
         load_fots,
         press_samples,
     )
+    from calibration.optics_fit.fots import FOTS_FREE, _held_out_errors
 
     press = load_fots(shared_data / "real" / "fots_gelsight_ballpress")
     assert press.frames.shape == (42, 320, 240, 3)

@@ -247,7 +247,7 @@ def test_a_cache_folder_that_cannot_be_made_warns_once_and_keeps_the_result(
 
 def test_a_read_only_cache_folder_warns_and_keeps_the_result(tmp_path, monkeypatch, caplog,
                                                              small_mesh, fresh_warning):
-    import tactile_deploy.atomic
+    from tactile_deploy.fem import simulator
     from tactile_deploy.runtime.forces import SurfaceStiffness
 
     def refuse(path):
@@ -256,7 +256,7 @@ def test_a_read_only_cache_folder_warns_and_keeps_the_result(tmp_path, monkeypat
     cache = tmp_path / "cache"
     cache.mkdir()
     monkeypatch.setenv("TACTILE_DEPLOY_CACHE_DIR", str(cache))
-    monkeypatch.setattr(tactile_deploy.atomic, "atomic_path", refuse)   # as a read-only folder
+    monkeypatch.setattr(simulator, "atomic_path", refuse)   # as a read-only folder
     with caplog.at_level(logging.WARNING):
         stiff = SurfaceStiffness.for_pad(small_mesh, 0.45)
     assert np.all(np.isfinite(stiff.matrix)) and not list(cache.iterdir())

@@ -21,13 +21,10 @@ from tactile_deploy.runtime.pipeline import (
     shading_gradients,
     subtract_reference,
 )
-from tactile_deploy.runtime.plugins import (
-    MODEL_GRID,
-    SensorPlugin,
-    crop_camera_mapping,
-    write_plugin,
-)
-from tactile_deploy.runtime.predictor import MeshPredictor, MeshTopology
+from tactile_deploy.runtime.plugins import MODEL_GRID, SensorPlugin, write_plugin
+from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
+from tactile_deploy.pad.topology import MeshTopology
+from tactile_deploy.runtime.predictor import MeshPredictor
 from tactile_deploy.runtime.sources.npz import save_clip
 
 BALL_RADIUS_MM = 2.35

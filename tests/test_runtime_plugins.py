@@ -15,7 +15,8 @@ from test_runtime_support import blob_frame, build_linear_onnx, build_test_plugi
 from typer.testing import CliRunner
 
 from tactile_deploy.cli.main import app
-from tactile_deploy.runtime import plugins as plugins_mod
+from tactile_deploy.checksums import file_sha256
+from tactile_deploy.runtime.plugins import discovery as plugins_mod
 from tactile_deploy.runtime.plugins import (
     PLUGIN_PATH_ENV,
     PluginError,
@@ -26,7 +27,7 @@ from tactile_deploy.runtime.plugins import (
     load_manifest,
     validate_plugin,
 )
-from tactile_deploy.runtime.predictor import MeshTopology
+from tactile_deploy.pad.topology import MeshTopology
 
 runner = CliRunner()
 
@@ -140,7 +141,7 @@ def test_corrupt_files_with_matching_checksums_are_refused(plugin_copy):
         p = plugin_copy / name
         p.write_bytes(b"garbage" * 10)
         doc[key]["path"] = name
-        doc[key]["sha256"] = plugins_mod.file_sha256(p)
+        doc[key]["sha256"] = file_sha256(p)
     _write_doc(plugin_copy, doc)
     report = validate_plugin(plugin_copy)
     text = "\n".join(report.problems)
@@ -153,7 +154,7 @@ def test_corrupt_files_with_matching_checksums_are_refused(plugin_copy):
 def test_wrong_shapes_are_refused(plugin_copy):
     doc = _manifest_doc(plugin_copy)
     np.save(plugin_copy / "noise_reference.npy", np.zeros((64, 64), np.float32))
-    doc["noise_reference"]["sha256"] = plugins_mod.file_sha256(plugin_copy / "noise_reference.npy")
+    doc["noise_reference"]["sha256"] = file_sha256(plugin_copy / "noise_reference.npy")
     _write_doc(plugin_copy, doc)
     report = validate_plugin(plugin_copy, check_model=False)
     assert any("must be a (128, 128) float depth map" in p and "(64, 64)" in p
@@ -165,7 +166,7 @@ def test_model_for_another_mesh_is_refused(plugin_copy):
     other = plugin_copy / "other_mesh.onnx"
     build_linear_onnx(other, topo, mesh_hash="0" * 64)
     doc = _manifest_doc(plugin_copy)
-    doc["model"] = {"path": "other_mesh.onnx", "sha256": plugins_mod.file_sha256(other)}
+    doc["model"] = {"path": "other_mesh.onnx", "sha256": file_sha256(other)}
     _write_doc(plugin_copy, doc)
     report = validate_plugin(plugin_copy)
     assert any("mesh hash 0000000000000000... differs from the sensor family's pad mesh" in p
@@ -181,7 +182,7 @@ def test_model_with_wrong_input_name_is_refused(plugin_copy):
     p = plugin_copy / "renamed.onnx"
     build_linear_onnx(p, topo, input_name="image")
     doc = _manifest_doc(plugin_copy)
-    doc["model"] = {"path": "renamed.onnx", "sha256": plugins_mod.file_sha256(p)}
+    doc["model"] = {"path": "renamed.onnx", "sha256": file_sha256(p)}
     _write_doc(plugin_copy, doc)
     report = validate_plugin(plugin_copy)
     assert any("expected an input named 'depth', the model has ['image']" in p
@@ -285,7 +286,7 @@ def test_write_plugin_never_replaces_a_manifest(plugin_dir, tmp_path):
 
 def test_crop_camera_mapping_copies_pixels():
     from tactile_deploy.imaging.camera_mapping import rectify
-    from tactile_deploy.runtime.plugins import crop_camera_mapping
+    from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
 
     img = np.random.default_rng(0).integers(0, 255, (32, 24, 3), dtype=np.uint8)
     cam = crop_camera_mapping(24, 32, 0.05, crop=(4, 6, 16, 20))

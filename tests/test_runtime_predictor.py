@@ -16,12 +16,10 @@ from test_runtime_support import (
 )
 
 from tactile_deploy.runtime.pipeline import FrameError
-from tactile_deploy.runtime.predictor import (
-    MeshPredictor,
-    MeshTopology,
-    ModelContractError,
-    choose_providers,
-)
+from tactile_deploy.onnx_runtime.errors import ModelContractError
+from tactile_deploy.onnx_runtime.session import choose_providers
+from tactile_deploy.pad.topology import MeshTopology
+from tactile_deploy.runtime.predictor import MeshPredictor
 
 
 @pytest.fixture(scope="module")

@@ -81,8 +81,8 @@ def test_run_writes_meshes_log_and_preview(plugin, predictor, tmp_path):
     assert np.allclose(surf.vertices, expected, atol=1e-5)
     assert np.allclose(surf.metadata["_ply_raw"]["vertex"]["data"]["disp_z_mm"],
                        (expected - predictor.topology.rest_vertices_mm)[:, 2], atol=1e-6)
-    glb = trimesh.load(out / "mesh_000002.glb", force="mesh", process=False)   # glTF: metres
-    assert np.allclose(glb.vertices, 1e-3 * expected, atol=1e-8)
+    glb = trimesh.load(out / "mesh_000002.glb", force="mesh", process=False)   # glTF: metres, y up
+    assert np.allclose(glb.vertices, 1e-3 * expected[:, [0, 2, 1]] * [1, 1, -1], atol=1e-8)
     rows = (out / "frames.csv").read_text().splitlines()
     assert rows[0].startswith("frame_index,t_capture_ns,latency_ms") and len(rows) == 7
     run = json.loads((out / "run.json").read_text())
@@ -99,9 +99,15 @@ def test_out_dir_is_never_overwritten_without_asking(tmp_path):
         prepare_out_dir(out)
     with pytest.raises(RunError, match="already holds"):
         prepare_out_dir(out, ask=lambda q: False)
+    (out / "notes.txt").write_text("user's notes")
     assert prepare_out_dir(out, ask=lambda q: True) == out
+    assert not (out / "mesh_000000.ply").exists()            # the previous run's files go ...
+    assert (out / "notes.txt").read_text() == "user's notes"  # ... the user's own stay
+    for name in ("mesh_000003.vtu", "frames.csv", "run.json", "preview.png", "frames/frame_000000.png"):
+        (out / name).parent.mkdir(exist_ok=True)
+        (out / name).write_text("old run")
     assert prepare_out_dir(out, overwrite=True) == out
-    assert (out / "mesh_000000.ply").read_text() == "user's file"
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     f = tmp_path / "a_file"
     f.write_text("x")
     with pytest.raises(RunError, match="is a file, not a folder"):

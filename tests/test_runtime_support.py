@@ -15,7 +15,7 @@ import numpy as np
 from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 from tactile_deploy.imaging.shading import ShadingHeader, ShadingModel, save_shading
 from tactile_deploy.runtime.plugins import MODEL_GRID, SensorPlugin, write_plugin
-from tactile_deploy.runtime.predictor import MeshTopology
+from tactile_deploy.pad.topology import MeshTopology
 from tactile_deploy.runtime.sources.npz import save_clip
 
 FRAME_W, FRAME_H = 640, 480

@@ -327,7 +327,9 @@ def test_ctrl_c_during_training_then_resume(tiny_run, tmp_path, capsys):
     assert proc.returncode == 130, err
     assert "interrupted; rerun the same command to resume" in err and "Traceback" not in err
     assert not [p for p in run.rglob("*") if "partial" in p.name]
-    done = torch.load(run / "checkpoints" / "image_vae.pt", weights_only=False)["epoch"]
+    from tactile_deploy.safe_torch import load_torch_file
+
+    done = load_torch_file(run / "checkpoints" / "image_vae.pt")["epoch"]
     assert done >= 2  # the checkpoint being saved at Ctrl-C may be the one before
 
     fewer = _write(tmp_path / "fewer.json", {**long, "image_vae": {**STAGE, "epochs": 1}})

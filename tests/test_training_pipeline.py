@@ -13,7 +13,7 @@ pytest.importorskip("onnxscript")
 
 
 def test_train_export_parity(tmp_path, pad):
-    from tactile_deploy.runtime.predictor import check_model_contract
+    from tactile_deploy.onnx_runtime.contract import check_model_contract
     from training.config import TrainConfig
     from training.export import export_run, make_session, run_session
     from training.train import load_bundle, train

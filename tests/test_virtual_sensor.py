@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from calibration.virtual_recordings import record_ball_presses, record_target_frames
 from tactile_deploy.indenters import AnalyticSphere, ContactPose
 from tactile_deploy.sensors import (
     SensorConfigError,
@@ -165,7 +166,7 @@ def test_frame_source_timing_and_lifecycle(pad_sim):
 def test_recorded_ball_presses_read_back_and_circles_match_the_images(gelslim1, tmp_path):
     from calibration.optics_fit import load_fots
 
-    rec = gelslim1.record_ball_presses(3, radius_mm=2.5, depth_range_mm=(0.4, 0.8), seed=1)
+    rec = record_ball_presses(gelslim1, 3, radius_mm=2.5, depth_range_mm=(0.4, 0.8), seed=1)
     assert rec.frames.shape == (3, 480, 640, 3)
     rec.save(tmp_path)
     back = load_fots(tmp_path)  # an independent reader of the FOTS layout
@@ -204,7 +205,7 @@ def test_target_frames_show_the_pins_near_their_true_pixels(gelslim1):
     mapping projects it. The blobs' centroids are pulled by the shading around each pin, which
     the 1 mm mesh resolves only coarsely (and by the lights' asymmetry): a few px, not more.
     (The renderer's own geometry is exact: test_optics.py.)"""
-    rec = gelslim1.record_target_frames()
+    rec = record_target_frames(gelslim1)
     assert rec.frames.shape == (1, 480, 640, 3) and rec.pins_mm.shape == (1, 63, 2)
     found = _blob_centres(rec.frames[0], rec.reference)
     assert len(found) == 63
@@ -220,11 +221,11 @@ def test_dot_detection_finds_the_pins_apexes_and_the_true_camera(gelslim2, depth
     camera mapping), and the mapping fitted from them against that camera over the imaging grid.
     The blobs' centroids are the check's teeth: pulled towards the lit flank, they miss by px."""
     from calibration.camera.dots import calibrate_dots, detect_dots
-    from calibration.camera.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
     from tactile_deploy.imaging.camera_mapping import build_remap
     from tactile_deploy.indenters import ContactPose
 
-    rec = gelslim2.record_target_frames(poses=[ContactPose(depth_mm=depth_mm)])
+    rec = record_target_frames(gelslim2, poses=[ContactPose(depth_mm=depth_mm)])
     true_px = rec.pins_px[0]
     det = detect_dots(rec.frames[0], rec.reference, blur_sigma_px=6.0)
 

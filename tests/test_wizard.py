@@ -361,9 +361,10 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     recorded beforehand at the contacts the wizard will command (the crop target: frames taken as
     rectified). The stage is driven to every planned contact, the gauge's forces are recorded."""
     from calibration.rig.simulated import HertzForce, SimulatedRig
-    from calibration.wizard.steps import plan_presses
+    from calibration.wizard.steps.presses import plan_presses
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
-    from tactile_deploy.runtime.plugins import crop_camera_mapping, validate_plugin
+    from tactile_deploy.runtime.plugins import validate_plugin
+    from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
     from tactile_deploy.runtime.sources.npz import save_clip
 
     mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)
@@ -477,7 +478,7 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
                              readout=LearnedReadout(base))
     # its own targets: the rig presses' FEM depth maps, as the wizard drew them
     from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.steps import press_profiles
+    from calibration.wizard.press_data import press_profiles
 
     work = out.parent / f"{out.name}.calibration"
     with np.load(work / "presses.npz") as z:

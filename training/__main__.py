@@ -156,7 +156,7 @@ def _main(argv: list[str]) -> int:
         return 0
 
     if args.command == "envelope-bank":
-        from tactile_deploy.fem.batched import EnvelopeBank
+        from training.simulation.batched import EnvelopeBank
         from tactile_deploy.indenters import get_indenter, list_indenters
 
         names = list_indenters("primitive") if args.indenters == "primitive" else args.indenters.split(",")

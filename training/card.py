@@ -8,6 +8,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from tactile_deploy.onnx_runtime.contract import DEPTH_DOC, FRAME, SENSOR_FAMILY
+
 CARD_FORMAT = 1
 
 
@@ -70,8 +72,6 @@ INTENDED_USE = [
 def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, seconds, graph_file=None,
                int8_calibration=None) -> dict:
     """The card of graph ``out`` (its bytes read from ``graph_file``, default ``out``)."""
-    from training.export import DEPTH_DOC, FRAME, SENSOR_FAMILY
-
     cfg = bundle["config"]
     m = bundle["metrics"]
     out = Path(out)

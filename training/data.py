@@ -217,7 +217,7 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     """
     import torch
 
-    from tactile_deploy.fem.batched import BatchedContactSimulator, EnvelopeBank
+    from training.simulation.batched import BatchedContactSimulator, EnvelopeBank
     from tactile_deploy.fem.material import Material
     from tactile_deploy.indenters import get_indenter
     from tactile_deploy.pad.asset import load_pad

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from tactile_deploy.onnx_runtime.contract import DEPTH_DOC, FRAME, SENSOR_FAMILY
 from training.errors import UsageError
 from training.networks.predictor import Predictor
 
@@ -48,16 +49,6 @@ VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8",
 SHIPPED_VARIANT = "lean-int8-fastood"
 OPSET = 18
 OUTPUTS = ["vertices", "displacement", "ood_score"]
-SENSOR_FAMILY = "gelslim"
-FRAME = (
-    "sensor frame: origin at the centre of the sensing surface, z up out of the gel, mm; "
-    "vertex order of the frozen pad mesh (node = layer * 1076 + i, layer 0 = sensing surface)"
-)
-DEPTH_DOC = (
-    "depth [N, 1, 128, 128] float32, mm the sensing surface is pushed in (>= 0); orthographic "
-    "camera over +-17.5 mm, pixel (row i, col j) centred at x = -17.5 + (j + 0.5) 0.2734, "
-    "y = 17.5 - (i + 0.5) 0.2734 mm (row 0 = largest y)"
-)
 
 
 # ----------------------------------------------------------------------------------------- graphs

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from tactile_deploy.atomic import atomic_path, write_json, write_npz, write_text
+from tactile_deploy.safe_torch import load_torch_file
 from training import distributed
 from training.config import StageConfig, TrainConfig
 from training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
@@ -116,7 +117,7 @@ def run_stage(
     history: list[dict] = []
     start = 0
     if ckpt.exists():
-        state = torch.load(ckpt, map_location=device, weights_only=False)
+        state = load_torch_file(ckpt, map_location=device)
         module.load_state_dict(state["module"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
@@ -283,7 +284,7 @@ def _stage_progress(run_dir: Path) -> dict[str, tuple[int, bool]]:
     for name in STAGES:
         ckpt = run_dir / "checkpoints" / f"{name}.pt"
         if ckpt.is_file():
-            state = torch.load(ckpt, map_location="cpu", weights_only=False)
+            state = load_torch_file(ckpt, map_location="cpu")
             out[name] = (int(state["epoch"]), bool(state.get("stopped_by_time_budget", False)))
     return out
 
@@ -622,7 +623,7 @@ def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]
         raise UsageError(f"training bundle {path} not found; train a run first (python -m training train "
                          "--config CONFIG.json) or give its model.pt")
     try:
-        bundle = torch.load(path, map_location=device, weights_only=False)
+        bundle = load_torch_file(path, map_location=device)
     except Exception as e:  # torch raises several types for damaged or foreign files
         raise UsageError(f"{path}: not a training bundle (torch cannot read it: {type(e).__name__}: {e}); give "
                          "the model.pt of a training run") from None

@@ -7,12 +7,13 @@ unit's own presses: each rig press is the ball at the rig's position (sensor fra
 the rig's intrusion plus its zero offset (the FEM step fits it), and the pad's FEM gives the
 surface around the cap (:class:`~calibration.shading.press_profile.PressProfile`). Those depth
 maps, and the no-contact frames with zero depth, continue the design's network
-(:mod:`training.shading_net.finetune`; needs torch and onnx, the ``train`` extra).
+(:mod:`tactile_deploy.learning.readout_finetuning`; needs torch and onnx, the ``train``
+extra).
 
 Data flow: profiles -> :meth:`PressProfile.depth_map` on the imaging grid (targets) ->
 read-out features of the raw frames (:meth:`ImagingPipeline.readout_features`) ->
-:func:`training.shading_net.finetune.finetune_network` -> an ONNX file in the read-out format,
-the base's contract and this fine-tuning in its metadata.
+:func:`tactile_deploy.learning.readout_finetuning.finetune_network` -> an ONNX file in the
+read-out format, the base's contract and this fine-tuning in its metadata.
 """
 
 from __future__ import annotations
@@ -71,8 +72,8 @@ def finetune_unit_readout(pipeline, press_frames, press_depths_mm, no_contact_fr
         import onnx  # noqa: F401  (the network is read from and written to ONNX)
         import torch  # noqa: F401
 
-        from training.shading_net.finetune import finetune_network, network_from_onnx
-        from training.shading_net.train import export_onnx, targets
+        from tactile_deploy.learning.readout_finetuning import finetune_network, network_from_onnx
+        from tactile_deploy.learning.readout_network import export_onnx, targets
     except ImportError as e:
         raise FinetuneUnavailable(
             f"fine-tuning the learned read-out needs torch and onnx ({e}): install them with "

@@ -16,6 +16,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from calibration.shading.fit import ShadingFitConfig
 from tactile_deploy.jsonfile import read_json, validation_error_text
 
 FORMAT_VERSION = 1
@@ -235,6 +236,13 @@ class WizardConfig(BaseModel):
             raise ValueError(f"shading.folds must be 0 or lie in [2, presses.n_presses="
                              f"{self.presses.n_presses}], got {f}")
         return self
+
+
+def shading_fit_config(settings: ShadingSettings) -> ShadingFitConfig:
+    """The :class:`~calibration.shading.fit.ShadingFitConfig` of the wizard's shading settings."""
+    return ShadingFitConfig(bins=settings.bins, node_spacing_mm=settings.node_spacing_mm,
+                            kernel_sigma_mm=settings.kernel_sigma_mm,
+                            ring_stride=settings.ring_stride, prior_model=settings.prior)
 
 
 def wizard_config_from_dict(doc: dict, source: str = "<dict>") -> WizardConfig:

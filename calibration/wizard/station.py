@@ -186,7 +186,7 @@ class VirtualStation(Station):
 
                 self._indenters[tool] = AnalyticSphere(tool.radius_mm)
             else:
-                from tactile_deploy.sensors.virtual import PinGrid
+                from tactile_deploy.indenters.pin_grid import PinGrid
 
                 self._indenters[tool] = PinGrid(tool.pitch_mm, tool.grid, tool.pin_radius_mm)
         return self._indenters[tool]
@@ -250,3 +250,12 @@ class VirtualStation(Station):
         finally:
             if self.sim is not None:
                 self.sim.stop()
+
+
+def rig_press_frames(station: Station, tool, contact, n_frames: int):
+    """Press with the rig and grab frames with the tool held: (frames or None, record)."""
+    held = []
+    x, y, d = contact
+    record = station.rig.press(x, y, d, on_pressed=lambda rec: held.append(
+        station.grab(n_frames)))
+    return (held[0] if held else None), record

@@ -20,6 +20,7 @@ import shutil
 from pathlib import Path
 
 from calibration.wizard.config import WizardConfig, wizard_config_from_dict
+from calibration.wizard.context import Context, Outcome, StepError
 from calibration.wizard.state import (
     STEP_TITLES,
     STEPS,
@@ -29,7 +30,7 @@ from calibration.wizard.state import (
     now_iso,
 )
 from calibration.wizard.station import Station, StationError
-from calibration.wizard.steps import STEP_FUNCTIONS, Context, Outcome, StepError
+from calibration.wizard.steps import STEP_FUNCTIONS
 
 #: Exit codes: done, bad input or a failed step, stopped by the person (resumable).
 EXIT_OK, EXIT_ERROR, EXIT_STOPPED = 0, 1, 130

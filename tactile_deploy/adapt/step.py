@@ -20,8 +20,10 @@ from typing import Callable
 
 import numpy as np
 
-from tactile_deploy.adapt.card import FILTER_FILE, STEP_FILE, AdaptationCard, CardError, load_card
+from tactile_deploy.adapt.card import AdaptationCard, CardError, load_card
 from tactile_deploy.adapt.weights import INSTALL_HINT, AdaptationUnavailable
+from tactile_deploy.checksums import file_sha256
+from tactile_deploy.safe_torch import weights_only_loads
 
 
 def require_torch():
@@ -34,8 +36,6 @@ def require_torch():
 
 
 def _verified(card: AdaptationCard, folder: Path, key: str) -> Path:
-    from tactile_deploy.checksums import file_sha256
-
     path = card.path(folder, key)
     if not path.is_file():
         raise CardError(f"{folder}: the card names {key} file {path}, which does not exist; restore it or "
@@ -68,7 +68,8 @@ class StepProgram:
             raise AdaptationUnavailable("--device cuda was asked for, but this torch has no CUDA device; use "
                                         "--device cpu or install a CUDA build of torch")
         try:
-            program = torch.export.load(str(path))
+            with weights_only_loads():       # no code from the file runs (docs/adaptation.md)
+                program = torch.export.load(str(path))
         except Exception as e:  # torch raises several types for damaged or foreign files
             raise CardError(f"{path}: torch cannot load the step program ({type(e).__name__}: {e}); it was "
                             f"exported with torch {card.versions.get('torch')}, this is torch {torch.__version__}: "
@@ -88,7 +89,6 @@ class StepProgram:
 
     def check_family_model(self, model_path: str | Path) -> None:
         """Refuse a family model other than the one the step was exported with."""
-        from tactile_deploy.checksums import file_sha256
 
         actual = file_sha256(model_path)
         expected = self.card.files["family_model"].sha256

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_deploy.adapt.card import AdaptationCard, CardError
+from tactile_deploy.atomic import atomic_path
 
 
 class AdaptationUnavailable(RuntimeError):
@@ -43,8 +44,6 @@ def write_adapted_onnx(card: AdaptationCard, fp32_path: str | Path, weights: dic
     (atomic); ``metadata`` entries are added to (or replace) the graph's metadata."""
     onnx = require_onnx()
     from onnx import numpy_helper
-
-    from tactile_deploy.atomic import atomic_path
 
     model = onnx.load(str(fp32_path))
     inits = {init.name: init for init in model.graph.initializer}
@@ -82,9 +81,12 @@ def quantise_int8(fp32_path: str | Path, out_path: str | Path, calibration_mm: n
     import logging
 
     onnx = require_onnx()
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
-
-    from tactile_deploy.atomic import atomic_path
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
 
     cal = np.asarray(calibration_mm, np.float32)
 
@@ -128,7 +130,6 @@ def _merge_metadata(model, entries: dict[str, str]) -> None:
 def write_metadata_entries(path: str | Path, entries: dict[str, str]) -> None:
     """Add or replace metadata entries of an ONNX file (atomic)."""
     onnx = require_onnx()
-    from tactile_deploy.atomic import atomic_path
 
     model = onnx.load(str(path))
     _merge_metadata(model, entries)

@@ -14,7 +14,7 @@ Data flow of :func:`adapt_plugin` (``tactile-deploy adapt``)::
       -> improved (the network's own, fp32, and the written model's beats both)? before/after
          figure, report
          -> plugin version adapted/v<n>, made active in adapted/history.json (atomic; plugin.json untouched;
-            tactile_deploy.adapt.versions)
+            tactile_deploy.runtime.plugins.versions)
 
 The label-free RMSE (mm) is the paper's metric: RMS over the held-out maps and the pixels the
 sensor sees of rendered mesh minus target. For an ONNX model its meshes are rendered by the
@@ -34,7 +34,37 @@ from typing import Callable
 
 import numpy as np
 
-from tactile_deploy.adapt.step import AdaptSettings, Evaluation, History, StepProgram, adapt, evaluate, vae_filter
+from tactile_deploy.adapt.step import (
+    AdaptSettings,
+    Evaluation,
+    History,
+    StepProgram,
+    adapt,
+    evaluate,
+    vae_filter,
+)
+from tactile_deploy.adapt.weights import (
+    adaptation_metadata,
+    quantise_int8,
+    read_adapted_weights,
+    write_adapted_onnx,
+    write_metadata_entries,
+)
+from tactile_deploy.atomic import atomic_path, write_json
+from tactile_deploy.camera.depth import DepthCamera
+from tactile_deploy.onnx_runtime.session import make_session
+from tactile_deploy.pad.asset import load_pad
+from tactile_deploy.runtime.pipeline import FrameError, GridResampler, ImagingPipeline
+from tactile_deploy.runtime.plugins import MODEL_GRID
+from tactile_deploy.runtime.plugins.versions import (
+    ADAPTED_DIR,
+    add_version,
+    check_writable,
+    load_history,
+    staging_folder,
+)
+from tactile_deploy.runtime.run import RunOptions
+from tactile_deploy.runtime.sources.factory import make_source
 
 #: Parity the adapted fp32 ONNX model must reach against the step program (mm).
 PARITY_TOLERANCE_MM = 1e-4
@@ -92,10 +122,6 @@ def default_step_folder(plugin) -> Path:
 def view_weight(plugin) -> np.ndarray:
     """(128, 128) float32 in [0, 1]: share of each model-grid cell the plugin's camera sees
     (its imaging grid), times the pad's disc."""
-    from tactile_deploy.camera.depth import DepthCamera
-    from tactile_deploy.pad.asset import load_pad
-    from tactile_deploy.runtime.pipeline import GridResampler
-    from tactile_deploy.runtime.plugins import MODEL_GRID
 
     fam = plugin.manifest.family
     pad = load_pad(fam.pad, fam.pad_version)
@@ -112,9 +138,6 @@ def collect_depths(plugin, config, from_manifest: bool = False, max_frames: int 
     """Depth maps (N, 128, 128) float32 mm of the frames of source ``config`` through the
     plugin's imaging pipeline; frames the pipeline refuses are counted and skipped, and
     ``max_refused`` in a row (default: ``tactile-deploy run``'s ``max_bad_frames``) stop it."""
-    from tactile_deploy.runtime.pipeline import FrameError, ImagingPipeline
-    from tactile_deploy.runtime.run import RunOptions
-    from tactile_deploy.runtime.sources.factory import make_source
 
     max_refused = max_refused or RunOptions.max_bad_frames
     pipeline = ImagingPipeline.from_plugin(plugin)
@@ -173,7 +196,6 @@ def prepare_adaptation(plugin, options: AdaptOptions, step_folder: str | Path | 
     """Every check that needs no frames, done before any are collected: the plugin's
     adapted/history.json and its active version, a writable plugin folder (when writing), the
     step (its card, files, the device) and that it belongs to the plugin's family model."""
-    from tactile_deploy.adapt.versions import check_writable, load_history
 
     load_history(plugin)
     plugin.adapted_model_path()  # the active version: present and unchanged
@@ -190,8 +212,6 @@ def evaluate_model(model_path: str | Path, pad, depth_mm: np.ndarray, target_mm:
     """Label-free figures of an ONNX model as ``run`` uses it (onnxruntime, CPU): its meshes of
     ``depth_mm`` (N, 128, 128) mm rendered by the depth camera, against ``target_mm`` with the
     step's weighting (``weight`` (128, 128)); rendered kept."""
-    from tactile_deploy.camera.depth import DepthCamera
-    from tactile_deploy.runtime.predictor import make_session
 
     session = make_session(model_path, threads=1, providers="cpu")
     d = np.asarray(depth_mm, np.float32)[:, None]
@@ -210,10 +230,6 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
     ``step_folder``: the step folder, or the step :func:`prepare_adaptation` loaded."""
     import shutil
     import tempfile
-
-    from tactile_deploy.adapt.versions import ADAPTED_DIR, add_version, staging_folder
-    from tactile_deploy.adapt.weights import adaptation_metadata, read_adapted_weights, write_metadata_entries
-    from tactile_deploy.pad.asset import load_pad
 
     t_start = time.perf_counter()
     step = step_folder if isinstance(step_folder, StepProgram) else prepare_adaptation(plugin, options, step_folder)
@@ -302,8 +318,6 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
         before_after_figure(depth[ho], target[ho], before.rendered_mm, after.rendered_mm, weight, result.figure,
                             before.rmse_mm, after.rmse_mm)
         report["seconds"] = time.perf_counter() - t_start
-        from tactile_deploy.atomic import write_json
-
         write_json(staging / "report.json", report)
         summary = (f"{len(tr)} + {len(ho)} held-out frames of {report['source'].get('source', 'depth maps')}, "
                    f"{options.steps} steps in {history.seconds:.0f} s on {options.device}")
@@ -325,8 +339,6 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
                   step_disp: np.ndarray, report: dict) -> dict:
     """Write model.onnx (and model_fp32.onnx when the family graph is int8) into ``folder``;
     check the fp32 graph against the step program's displacements on the held-out maps."""
-    from tactile_deploy.adapt.weights import adaptation_metadata, quantise_int8, write_adapted_onnx
-    from tactile_deploy.runtime.predictor import make_session
 
     card = step.card
     fp32_src = card.path(step.folder, "fp32_model")
@@ -347,7 +359,6 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
     if int8:
         cal = depth_train[np.random.default_rng(0).permutation(len(depth_train))[:256]][:, None]
         quantise_int8(fp32_path, folder / "model.onnx", cal, card.int8_nodes)
-        from tactile_deploy.adapt.weights import write_metadata_entries
 
         write_metadata_entries(folder / "model.onnx", {"variant": card.family_variant + "-adapted"})
         q = make_session(folder / "model.onnx", threads=1, providers="cpu")
@@ -361,7 +372,6 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
 def _ood_shares(family: Path, adapted: Path, depth: np.ndarray) -> dict:
     """Share of the held-out maps above the model's ood_threshold, family vs adapted model (the
     adapted encoder feeds the same out-of-distribution decoder)."""
-    from tactile_deploy.runtime.predictor import make_session
 
     out = {}
     for key, path in (("family", family), ("adapted", adapted)):
@@ -382,8 +392,6 @@ def before_after_figure(depth, target, before, after, weight, path: Path, rmse_b
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tactile_deploy.atomic import atomic_path
 
     pick = np.argsort([-float((t * weight).max()) for t in target])[:n]
     cols = ["input depth I", "target", "rendered before", "rendered after", "error before", "error after"]

@@ -111,8 +111,8 @@ def adapt_command(
 
 def _switch_version(plugin, rollback: bool, activate: int | None, dry_run: bool) -> None:
     """--rollback or --activate N (with --dry-run: say what it would do)."""
-    from tactile_deploy.adapt.versions import activate as do_activate
-    from tactile_deploy.adapt.versions import rollback as do_rollback
+    from tactile_deploy.runtime.plugins.versions import activate as do_activate
+    from tactile_deploy.runtime.plugins.versions import rollback as do_rollback
 
     if rollback and activate is not None:
         fail(f"give --rollback or --activate, not both (got --activate {activate} with --rollback)")

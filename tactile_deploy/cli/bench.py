@@ -25,6 +25,7 @@ BENCHMARKS = {
     "predictor": "bench_predictor.py",
     "runtime": "bench_runtime.py",
     "adapt": "bench_adapt.py",
+    "adapt-tables": "bench_adapt_tables.py",
     "discrepancy": "bench_discrepancy.py",
 }
 

@@ -25,18 +25,28 @@ def run_command(
     sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder "
                                "(`tactile-deploy plugins list`)."),
     source: str | None = typer.Option(
-        None, "--source", help="Frame source: demo | camera index (0) or /dev/videoN | video file "
+        None, "--source", help="Frame source: demo | camera index (0), /dev/videoN, "
+        "/dev/v4l/by-id/... or serial:SERIAL (`tactile-deploy cameras`) | video file "
         "| image folder | recording.npz | virtual[:NAME]. Default: the plugin's default source "
         "(the shipped plugins: their demo clip)."),
     out: Path | None = typer.Option(None, "--out", help="Folder for meshes, frames.csv, "
                                        "run.json (and previews with --view)."),
     every: int = typer.Option(1, "--every", min=1, help="Write the mesh of every N-th frame."),
     formats: str = typer.Option("ply,vtu", "--format", help="Mesh files to write: ply, obj, glb "
-                                "(surface), vtu (volume); comma-separated."),
+                                "(surface), vtu (volume), npz (vertices, rest_vertices, depth "
+                                "arrays); comma-separated."),
     publish: str | None = typer.Option(None, "--publish", help="Stream meshes over ZeroMQ "
-                                          "PUB, e.g. tcp://*:5555 (docs/runtime.md)."),
-    view: bool = typer.Option(False, "--view", help="Write preview.png (depth map and coloured "
-                              "mesh) about once a second."),
+                                          "PUB: a port (5555: this computer only, 127.0.0.1), "
+                                          "tcp://*:5555 (every interface, the network) or "
+                                          "ipc:///tmp/tactile.sock (docs/runtime.md)."),
+    view: bool = typer.Option(False, "--view", help="Show the run: `--view` writes preview.png "
+                              "(depth map and coloured mesh) about once a second; `--view live` "
+                              "serves a live 3-D view to a web browser (rerun; needs the [view] "
+                              "extra)."),
+    view_mode: str | None = typer.Argument(None, hidden=True, show_default=False,
+                                           help="`live` after --view."),
+    view_port: int = typer.Option(9090, "--view-port", min=0, max=65535, help="Port of the live "
+                                  "view's page (0: any free port); its data stays on 127.0.0.1."),
     forces: bool = typer.Option(True, "--forces/--no-forces", help="Estimate contact forces "
                                 "(inverse FEM; the first run computes the pad stiffness once, 15-30 s)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
@@ -51,6 +61,12 @@ def run_command(
                                    "folder without asking."),
     colour_max_mm: float = typer.Option(1.0, "--colour-max-mm", min=1e-3, help="Displacement "
                                         "(mm) at the top of the colour scale."),
+    record: bool = typer.Option(False, "--record", help="Keep the raw camera frames losslessly "
+                                "(PNG) with their capture times in <--out>/frames/ (a frame "
+                                "source itself: --source <out>/frames)."),
+    mcap: Path | None = typer.Option(None, "--mcap", help="Record standard ROS 2 messages (raw "
+                                     "frame, depth, mesh, force, pressure) into this MCAP file "
+                                     "(`ros2 bag play`, Foxglove; needs the [ros] extra)."),
 ) -> None:
     """Turn a sensor's frames into pad meshes live: prints fps and latency; Ctrl-C ends cleanly."""
     from rich.logging import RichHandler
@@ -74,6 +90,8 @@ def run_command(
     from tactile_deploy.runtime.sources.factory import make_source
     from tactile_deploy.runtime.writers import parse_formats
 
+    view_live = _view_mode(view, view_mode)
+    view = view and not view_live
     try:
         fmts = parse_formats(formats)
     except ValueError as e:
@@ -81,12 +99,14 @@ def run_command(
     if providers not in PROVIDERS:
         fail(f"--providers {providers!r}: choose one of {', '.join(PROVIDERS)}")
     if publish:
-        from tactile_deploy.runtime.publish import PublishError, check_address
+        from tactile_deploy.runtime.publish import PublishError, bind_address
 
         try:
-            check_address(publish)
+            bind_address(publish)
         except PublishError as e:
             fail(str(e))
+    if record and out is None:
+        fail("--record keeps the raw frames in the --out folder: give --out DIR")
     if out is not None and str(out).startswith("-"):
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")
@@ -105,6 +125,12 @@ def run_command(
         src = make_source(config, plugin, from_manifest=from_manifest)
         src.connect()
         src.disconnect()
+        settings = getattr(src, "settings", None) or {}
+        if settings.get("delivered"):
+            got, asked = settings["delivered"], settings["asked"]
+            err_console.print(f"{src.name} delivers {got['width_px']}x{got['height_px']} px at "
+                              f"{got['fps']:g} fps (asked {asked['width_px']}x"
+                              f"{asked['height_px']} at {asked['fps'] or 'its default rate'})")
         out_dir = prepare_out_dir(out, overwrite, _ask) if out is not None else None
         preview_dir = None
         if view and out_dir is None:
@@ -125,6 +151,9 @@ def run_command(
                                   f"(cached in {path.parent}); --no-forces skips it")
                 with progress_bar("surface stiffness", n, "columns") as advance:
                     estimator = ForceEstimator.for_plugin(plugin, progress=advance)
+        sinks = _make_sinks(plugin, predictor, mcap=mcap, overwrite=overwrite,
+                            colour_max_mm=colour_max_mm, view_port=view_port if view_live else None,
+                            record_dir=out_dir if record else None)
         publisher = None
         if publish:
             from tactile_deploy.runtime.publish import MeshPublisher
@@ -132,17 +161,24 @@ def run_command(
             publisher = MeshPublisher(publish, plugin.name, predictor.topology)
             err_console.print(f"publishing meshes on {publisher.endpoint} (topics mesh/{plugin.name}, "
                               f"topology/{plugin.name})")
+            if not publisher.endpoint.startswith(("tcp://127.", "ipc://", "inproc://")):
+                err_console.print("  this address is reachable from the network: anyone who "
+                                  "can reach it receives the meshes (a port alone, --publish "
+                                  "5555, keeps them on this computer)")
     except (PluginError, ModelContractError, SourceSpecError, SourceError, RunError,
             FrameError, FileNotFoundError) as e:
         fail(str(e))
     except OSError as e:  # a file that cannot be read or written
         where = f" ({e.filename})" if e.filename else ""
         fail(f"{e.strerror or e}{where}: check that the file exists and its permissions")
-    except Exception as e:  # e.g. the publisher's bind error
+    except Exception as e:  # e.g. the publisher's or the live view's bind error
         from tactile_deploy.runtime.publish import PublishError
 
         if isinstance(e, PublishError):
             fail(str(e))
+        if view_live and "address" in str(e).lower():
+            fail(f"the live view cannot listen on port {view_port}: {e}; pass another "
+                 "--view-port (0: any free port)")
         raise
 
     options = RunOptions(out_dir=out_dir, every=every, formats=fmts, publish=publish, view=view,
@@ -160,7 +196,7 @@ def run_command(
             print(line, file=sys.stderr, flush=True)
 
     runner = Runner(predictor, src, options, forces=estimator, publisher=publisher,
-                    status=status, sensor=plugin.name)
+                    status=status, sensor=plugin.name, sinks=sinks)
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     model = predictor.model_path
     if model.is_relative_to(plugin.folder.resolve()):
@@ -183,7 +219,10 @@ def run_command(
         console.print(f"outputs in {out_dir}")
     elif preview_dir is not None:
         console.print(f"preview in {preview_dir / 'preview.png'}")
-    if summary.write_error:
+    viewer = next((s for s in sinks if s.name == "live view"), None)
+    if viewer is not None and summary.stopped_by != "interrupted":
+        _keep_serving(viewer)
+    if summary.write_error or any(r.get("error") for r in summary.sinks.values()):
         raise typer.Exit(1)
     if summary.frames == 0 and summary.stopped_by != "interrupted":
         fail(f"no frame of {src.name} became a mesh ({summary.bad_frames} refused, "
@@ -191,6 +230,76 @@ def run_command(
              f"sensor's camera frames ({plugin.name} expects "
              f"{plugin.manifest.camera.image_width_px} x {plugin.manifest.camera.image_height_px} px RGB)",
              code=1)
+
+
+def _view_mode(view: bool, mode: str | None) -> bool:
+    """True for ``--view live``; ``--view`` alone (or ``--view png``) is the PNG preview."""
+    if mode is None:
+        return False
+    if not view or mode not in ("live", "png"):
+        fail(f"unexpected argument {mode!r}: `run` takes options only (did you mean "
+             "`--view live`?)")
+    return mode == "live"
+
+
+def _keep_serving(viewer) -> None:
+    """After a finite source ended the live view stays up until Ctrl-C (or SIGTERM)."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+        err_console.print(f"the live view stays at {viewer.url} until Ctrl-C")
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _make_sinks(plugin, predictor, *, mcap: Path | None, overwrite: bool,
+                colour_max_mm: float, view_port: int | None = None,
+                record_dir: Path | None = None) -> list:
+    """The recordings and viewers a run feeds (runtime/sinks.py); refuses before the run starts
+    what cannot work (a missing extra, a file that would be written over)."""
+    from tactile_deploy.runtime.run import RunError
+
+    sinks = []
+    if record_dir is not None:
+        from tactile_deploy.runtime.record import RawFrameRecorder
+        from tactile_deploy.runtime.run import RECORD_FOLDER
+
+        sinks.append(RawFrameRecorder(record_dir / RECORD_FOLDER))
+    if mcap is not None:
+        _need("mcap", "ros", "--mcap")
+        _need("rosbags", "ros", "--mcap")
+        from tactile_deploy.outputs import OutputPathError, check_output_file
+
+        try:
+            mcap = check_output_file(Path(mcap).expanduser(), "--mcap", overwrite=overwrite,
+                                     suffixes=(".mcap",))
+        except OutputPathError as e:
+            raise RunError(str(e)) from None
+        from tactile_deploy.runtime.ros.mcap_recorder import McapRecorder
+
+        sinks.append(McapRecorder(mcap, plugin.name, predictor.topology,
+                                  colour_max_mm=colour_max_mm))
+    if view_port is not None:
+        _need("rerun", "view", "--view live")
+        from tactile_deploy.runtime.live_view import LiveView
+
+        viewer = LiveView(plugin.name, predictor.topology, web_port=view_port,
+                          colour_max_mm=colour_max_mm)
+        url = viewer.serve()
+        err_console.print(f"live view: open {url} in a web browser")
+        sinks.append(viewer)
+    return sinks
+
+
+def _need(module: str, extra: str, option: str) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        fail(f"{option} needs the Python package {module!r}: pip install 'tactile-deploy[{extra}]'")
 
 
 #: onnxruntime execution providers `--providers` accepts.

@@ -97,7 +97,7 @@ def simulate_command(
             fail("--sensor simulates one contact; leave out --n")
         if indenter is None:
             fail("give --indenter NAME|PATH for the contact")
-        from tactile_deploy.sensors.cli import single_sensor_contact
+        from tactile_deploy.cli.simulate_sensor import single_sensor_contact
 
         single_sensor_contact(sensor, rgb, seed, indenter, pressing_face, x, y, theta, depth,
                               out, overwrite)

@@ -30,7 +30,13 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, DofMap, Supports, build_dof_map
+from tactile_deploy.atomic import atomic_path
+from tactile_deploy.fem.constraints import (
+    SENSOR_SUPPORTS,
+    DofMap,
+    Supports,
+    build_dof_map,
+)
 from tactile_deploy.fem.contact import solve_contact
 from tactile_deploy.fem.elasticity import assemble_stiffness
 from tactile_deploy.fem.material import Material
@@ -60,7 +66,6 @@ def save_cached(path: Path, arr: np.ndarray) -> bool:
     """Write ``arr`` to the cache file ``path`` (.npy, atomic). When the cache cannot be
     written, warn once per process and return False: the caller keeps its result in memory."""
     global _cache_warned
-    from tactile_deploy.atomic import atomic_path
 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

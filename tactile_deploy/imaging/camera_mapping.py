@@ -580,3 +580,29 @@ def load_mapping(path: str | os.PathLike) -> CameraMapping:
 def camera_mapping_json_schema() -> dict:
     """JSON Schema of the camera mapping file (field descriptions included)."""
     return CameraMapping.model_json_schema()
+
+
+def crop_camera_mapping(image_width_px: int, image_height_px: int, mm_per_px: float,
+                        crop: tuple[int, int, int, int] | None = None,
+                        mirrored: bool = False) -> CameraMapping:
+    """Camera mapping of a sensor whose frames need no lens or perspective correction: a crop.
+
+    The image (or the crop ``(x0, y0, width, height)`` px of it) is centred on the sensor
+    origin, columns along +x and rows along -y (``mirrored``: rows along +y), at ``mm_per_px``;
+    the imaging grid is exactly the crop's pixels, so rectification copies them.
+    """
+    x0, y0, w, h = crop if crop is not None else (0, 0, image_width_px, image_height_px)
+    if not (0 <= x0 and 0 <= y0 and x0 + w <= image_width_px and y0 + h <= image_height_px
+            and w >= 2 and h >= 2):
+        raise ValueError(f"crop {crop} does not fit a {image_width_px}x{image_height_px} image")
+    s = float(mm_per_px)
+    cu = x0 + (w - 1) / 2.0
+    cv = y0 + (h - 1) / 2.0
+    sy = s if mirrored else -s
+    hmat = [[s, 0.0, -s * cu], [0.0, sy, -sy * cv], [0.0, 0.0, 1.0]]
+    k = [[float(image_width_px), 0.0, (image_width_px - 1) / 2.0],
+         [0.0, float(image_width_px), (image_height_px - 1) / 2.0], [0.0, 0.0, 1.0]]
+    grid = OutputGrid(x_min_mm=-w * s / 2, x_max_mm=w * s / 2, y_min_mm=-h * s / 2,
+                      y_max_mm=h * s / 2, nx=w, ny=h)
+    return camera_mapping_from_parameters((image_width_px, image_height_px), k, np.zeros(5),
+                                          hmat, grid=grid)

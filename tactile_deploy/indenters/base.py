@@ -31,7 +31,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tactile_deploy.indenters.pose import ContactPose, pose_matrix, sensor_to_indenter_xy
+from tactile_deploy.atomic import write_npz
+from tactile_deploy.indenters.pose import (
+    ContactPose,
+    pose_matrix,
+    sensor_to_indenter_xy,
+)
+from tactile_deploy.indenters.shapes import paraboloid, sphere
+from tactile_deploy.raster import RasterGrid, rasterize_triangles
 
 if TYPE_CHECKING:  # trimesh is imported lazily: it takes seconds to import
     import trimesh
@@ -300,8 +307,6 @@ class Indenter:
         grid = self._build_grid()
         if path is not None:
             try:
-                from tactile_deploy.atomic import write_npz
-
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_npz(path, heights_mm=grid.heights_mm,
                           origin_mm=np.array([grid.x0_mm, grid.y0_mm]),
@@ -312,8 +317,6 @@ class Indenter:
         return grid
 
     def _build_grid(self) -> EnvelopeGrid:
-        from tactile_deploy.raster import RasterGrid, rasterize_triangles
-
         tri = self.mesh.triangles
         low = tri[:, :, 2].min(axis=1) <= self.max_relief_mm
         tri = tri[low]
@@ -411,8 +414,6 @@ class AnalyticIndenter(Indenter):
         return self._footprint_radius_exact()
 
     def _load_or_build_grid(self) -> EnvelopeGrid:
-        from tactile_deploy.raster import RasterGrid
-
         r = self._footprint_radius_exact()
         raster = RasterGrid.covering([-r, -r], [r, r], self.pitch_mm, pad_pixels=2)
         c = raster.pixel_centres_mm().reshape(-1, 2)
@@ -445,8 +446,6 @@ class AnalyticSphere(AnalyticIndenter):
         return big if h >= big else math.sqrt(h * (2.0 * big - h))
 
     def _build_mesh(self):
-        from tactile_deploy.indenters.shapes import sphere
-
         return sphere(self.radius_mm)
 
 
@@ -470,6 +469,4 @@ class AnalyticParaboloid(AnalyticIndenter):
         return math.sqrt(2.0 * self.radius_mm * self.max_relief_mm)
 
     def _build_mesh(self):
-        from tactile_deploy.indenters.shapes import paraboloid
-
         return paraboloid(self.radius_mm, self.max_relief_mm + 1.0)

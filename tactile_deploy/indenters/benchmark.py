@@ -19,6 +19,9 @@ import time
 
 import numpy as np
 
+from tactile_deploy.indenters import ContactPose, Indenter, get_indenter, library_entry
+from tactile_deploy.raster import RasterGrid, rasterize_triangles
+
 
 def _timeit(fn, repeats: int) -> dict:
     times = []
@@ -46,9 +49,6 @@ def pad_surface_triangles(n_points: int = 1080, radius_mm: float = 17.5, seed: i
 def run(small: bool = False) -> dict[str, dict]:
     """Run every case; ``small``: fewer repeats and smaller grids. Returns timings per case."""
     import trimesh
-
-    from tactile_deploy.indenters import ContactPose, Indenter, get_indenter, library_entry
-    from tactile_deploy.raster import RasterGrid, rasterize_triangles
 
     repeats = 2 if small else 15
     results = {}

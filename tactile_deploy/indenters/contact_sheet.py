@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.atomic import atomic_path
+from tactile_deploy.indenters.library import get_indenter, list_indenters
+
 #: Half-width (mm) of the square shown for every indenter (library features lie within 12 mm).
 VIEW_HALF_WIDTH_MM = 12.5
 
@@ -44,9 +47,6 @@ def render_contact_sheet(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tactile_deploy.atomic import atomic_path
-    from tactile_deploy.indenters.library import get_indenter, list_indenters
 
     names = list(names) if names is not None else list_indenters()
     half = VIEW_HALF_WIDTH_MM

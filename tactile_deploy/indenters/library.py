@@ -34,6 +34,7 @@ from tactile_deploy.indenters.base import (
     AnalyticSphere,
     Indenter,
 )
+from tactile_deploy.indenters.loading import load_indenter
 
 KINDS = ("primitive", "novel")
 MESH_SUFFIXES = (".stl", ".obj", ".ply")
@@ -366,7 +367,6 @@ def get_indenter(
     """
     text = str(name_or_path)
     if isinstance(name_or_path, Path) or text.lower().endswith(MESH_SUFFIXES) or "/" in text:
-        from tactile_deploy.indenters.loading import load_indenter
 
         return load_indenter(text, pressing_face=pressing_face, pitch_mm=pitch_mm,
                              max_relief_mm=max_relief_mm)

@@ -30,7 +30,11 @@ import math
 import cv2
 import numpy as np
 
-from tactile_deploy.imaging.camera_mapping import OutputGrid, pixels_to_sensor_mm
+from tactile_deploy.imaging.camera_mapping import (
+    OutputGrid,
+    pixels_to_sensor_mm,
+    sensor_mm_to_pixels,
+)
 from tactile_deploy.optics.model import OpticsModel
 
 
@@ -347,7 +351,6 @@ class OpticsRenderer:
             np.stack([x0 + (x1 - x0) * t, np.full_like(t, y1)], 1),
             np.stack([np.full_like(t, x0), y0 + (y1 - y0) * t], 1),
             np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1)])
-        from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
 
         uv = sensor_mm_to_pixels(outline, self.model.camera)
         h, w = self.shape

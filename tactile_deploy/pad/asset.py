@@ -17,8 +17,9 @@ from tactile_deploy.atomic import write_json, write_npz
 from tactile_deploy.pad.geometry import GELSLIM_PAD, PadGeometry
 from tactile_deploy.pad.mesh import PadMesh, build_pad_mesh, content_hash
 from tactile_deploy.pad.quality import quality_report
+from tactile_deploy.shipped import asset_dir
 
-ASSET_DIR = Path(__file__).resolve().parent.parent / "assets" / "pads"
+ASSET_DIR = asset_dir("pads")
 
 #: Pads we ship: name -> (version, geometry).
 SHIPPED_PADS: dict[str, tuple[int, PadGeometry]] = {"gelslim": (1, GELSLIM_PAD)}

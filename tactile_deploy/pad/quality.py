@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tactile_deploy.pad.meshing import signed_volumes
+
 _FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face i is opposite vertex i
 _EDGE_FACES = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
 
@@ -83,7 +85,6 @@ class QualityReport:
 
 def quality_report(vertices: np.ndarray, tets: np.ndarray, sliver_deg: float = 10.0) -> QualityReport:
     """Check a tet mesh: inverted elements, slivers, dihedral extremes, worst aspect ratio."""
-    from tactile_deploy.pad.meshing import signed_volumes
 
     vol = signed_volumes(vertices, tets)
     dih = dihedral_angles_deg(vertices, tets)

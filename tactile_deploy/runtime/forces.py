@@ -38,6 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from tactile_deploy.fem.material import Material
+from tactile_deploy.fem.simulator import ContactSimulator, cache_dir, save_cached
+from tactile_deploy.pad.asset import load_pad
+
 log = logging.getLogger(__name__)
 
 #: Version of the cached stiffness file; bump when its meaning changes.
@@ -79,15 +83,11 @@ class SurfaceStiffness:
 
     @staticmethod
     def _simulator(mesh, nu: float):
-        from tactile_deploy.fem.material import Material
-        from tactile_deploy.fem.simulator import ContactSimulator
-
         return ContactSimulator(mesh, Material(nu=nu), assembly="numpy", use_cache=False)
 
     @classmethod
     def cache_path(cls, mesh, nu: float):
         """Where :meth:`for_pad` caches the stiffness of ``mesh`` at Poisson ratio ``nu``."""
-        from tactile_deploy.fem.simulator import cache_dir
 
         sim = cls._simulator(mesh, nu)
         key = hashlib.sha256(f"v{_CACHE_VERSION}|{sim.operator_key}".encode()).hexdigest()[:20]
@@ -98,8 +98,6 @@ class SurfaceStiffness:
         """The stiffness of ``mesh`` for Poisson ratio ``nu`` (cached on disk after the first
         computation, which solves the sparse FEM system once per sensing node; ``progress(n)``
         is called as columns are done)."""
-        from tactile_deploy.fem.material import Material
-        from tactile_deploy.fem.simulator import ContactSimulator, cache_dir, save_cached
 
         sim = cls._simulator(mesh, nu)
         path = cls.cache_path(mesh, nu)
@@ -178,8 +176,6 @@ class ForceEstimator:
     @classmethod
     def for_pad(cls, E_mpa: float, nu: float, pad: str = "gelslim", version: int | None = None,
                 progress=None) -> ForceEstimator:
-        from tactile_deploy.pad.asset import load_pad
-
         mesh = load_pad(pad, version)
         stiff = SurfaceStiffness.for_pad(mesh, nu, progress=progress)
         return cls(stiff, E_mpa, mesh.vertices, mesh.sensing_nodal_areas_mm2()[stiff.nodes])

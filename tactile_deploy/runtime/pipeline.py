@@ -43,6 +43,7 @@ from tactile_deploy.imaging.camera_mapping import (
     compact_remap,
     rectify,
 )
+from tactile_deploy.imaging.learned_readout import FeatureMaker
 from tactile_deploy.imaging.poisson import PoissonSolver, poisson_solver
 from tactile_deploy.imaging.shading import ShadingModel, frame_offset, reference_gain
 
@@ -341,7 +342,6 @@ class ImagingPipeline:
         self.readout = readout
         self.readout_gain = np.float32(readout_gain)
         if readout is not None:
-            from tactile_deploy.imaging.learned_readout import FeatureMaker
 
             self.features = FeatureMaker(self.tables.reference_u8, camera.grid,
                                          readout.saturation_level)

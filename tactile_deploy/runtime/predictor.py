@@ -14,191 +14,45 @@ order), ``displacement`` (N, n, 3) mm (vertices minus rest positions) and ``ood_
 (dimensionless; above the model's ``ood_threshold`` a frame is outside the training range). The
 model's metadata carries ``mesh_hash``, which must equal the pad mesh's content hash.
 
-One place builds the onnxruntime session (:func:`make_session`): explicit providers checked
-against what is installed (CUDA when present, CPU otherwise, a warning when CUDA was asked for or
-offered and dropped), one intra-op thread by default, sequential execution, full graph
-optimisation.
+Sessions come from :func:`tactile_deploy.onnx_runtime.session.make_session` and every model is
+checked against the contract (:func:`tactile_deploy.onnx_runtime.contract.check_model_contract`)
+when it is loaded.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.onnx_runtime.contract import (
+    GRID,
+    INPUT_NAME,
+    META_OOD_THRESHOLD,
+    OUTPUT_DISPLACEMENT,
+    OUTPUT_OOD,
+    OUTPUT_VERTICES,
+    check_model_contract,
+)
+from tactile_deploy.onnx_runtime.errors import ModelContractError
+from tactile_deploy.onnx_runtime.session import make_session
+from tactile_deploy.pad.topology import MeshTopology
 from tactile_deploy.runtime.pipeline import (
     FrameError,
     ImagingPipeline,
     Laps,
     frame_to_mesh,
 )
+from tactile_deploy.runtime.plugins import SensorPlugin
 
 log = logging.getLogger(__name__)
 
-INPUT_NAME = "depth"
-OUTPUT_VERTICES = "vertices"
-OUTPUT_DISPLACEMENT = "displacement"
-OUTPUT_OOD = "ood_score"
-META_MESH_HASH = "mesh_hash"
-META_OOD_THRESHOLD = "ood_threshold"
-GRID = 128
-
-CUDA = "CUDAExecutionProvider"
-CPU = "CPUExecutionProvider"
-
-
-class ModelContractError(ValueError):
-    """An ONNX model does not follow the contract (names, shapes, metadata, mesh hash)."""
-
-
-# ------------------------------------------------------------------------------------ session
-def choose_providers(providers: str | list[str] = "auto") -> list[str]:
-    """Execution providers to ask for: ``"auto"`` (CUDA when installed, then CPU), ``"cpu"``,
-    ``"cuda"`` (CPU with a warning when CUDA is not installed), or an explicit list."""
-    import onnxruntime as ort
-
-    available = ort.get_available_providers()
-    if isinstance(providers, (list, tuple)):
-        missing = [p for p in providers if p not in available]
-        if missing:
-            warnings.warn(f"onnxruntime providers {missing} are not installed (available: "
-                          f"{available}); they are skipped", RuntimeWarning, stacklevel=3)
-        chosen = [p for p in providers if p in available]
-        return chosen or [CPU]
-    mode = providers.lower()
-    if mode == "cpu":
-        return [CPU]
-    if mode in ("auto", "cuda"):
-        if CUDA in available:
-            return [CUDA, CPU]
-        if mode == "cuda":
-            warnings.warn("CUDA was asked for but this onnxruntime has no CUDAExecutionProvider "
-                          "(install onnxruntime-gpu with a matching CUDA); running on the CPU",
-                          RuntimeWarning, stacklevel=3)
-        return [CPU]
-    raise ValueError(f"providers must be 'auto', 'cpu', 'cuda' or a list of provider names, "
-                     f"got {providers!r}")
-
-
-def make_session(model_path: str | os.PathLike, threads: int = 1,
-                 providers: str | list[str] = "auto"):
-    """An ``onnxruntime.InferenceSession`` with this project's defaults (module docstring)."""
-    import onnxruntime as ort
-
-    path = Path(model_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ONNX model {path} not found")
-    if int(threads) < 1:
-        raise ValueError(f"threads must be >= 1, got {threads}")
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = int(threads)
-    so.inter_op_num_threads = 1
-    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.log_severity_level = 3
-    wanted = choose_providers(providers)
-    try:
-        session = ort.InferenceSession(str(path), so, providers=wanted)
-    except Exception as e:  # onnxruntime raises its own exception types
-        raise ModelContractError(f"{path}: onnxruntime cannot load it ({type(e).__name__}: "
-                                 f"{e}); the file is damaged or not an ONNX model - restore it "
-                                 "or export it again") from None
-    used = session.get_providers()
-    if CUDA in wanted and CUDA not in used:
-        warnings.warn(f"onnxruntime could not start CUDA for {path.name} (missing CUDA/cuDNN "
-                      "libraries?); running on the CPU", RuntimeWarning, stacklevel=2)
-    return session
-
-
-def check_model_contract(model_path, expected_mesh_hash: str | None, n_nodes: int | None = None,
-                         what: str = "model", session=None) -> dict:
-    """Check names, shapes and the mesh hash of an ONNX model; returns its metadata.
-
-    Raises :class:`ModelContractError` naming the model, what was expected and what was found.
-    """
-    path = Path(model_path)
-    session = session or make_session(path, threads=1, providers="cpu")
-    inputs = {i.name: i for i in session.get_inputs()}
-    outputs = {o.name: o for o in session.get_outputs()}
-    where = f"{what} {path}"
-    if INPUT_NAME not in inputs:
-        raise ModelContractError(f"{where}: expected an input named {INPUT_NAME!r}, the model "
-                                 f"has {sorted(inputs)}")
-    shape = inputs[INPUT_NAME].shape
-    if len(shape) != 4 or list(shape[1:]) != [1, GRID, GRID]:
-        raise ModelContractError(f"{where}: input {INPUT_NAME!r} must be [N, 1, {GRID}, {GRID}], "
-                                 f"the model has {shape}")
-    if inputs[INPUT_NAME].type != "tensor(float)":
-        raise ModelContractError(f"{where}: input {INPUT_NAME!r} must be float32, the model has "
-                                 f"{inputs[INPUT_NAME].type}")
-    for name in (OUTPUT_VERTICES, OUTPUT_DISPLACEMENT, OUTPUT_OOD):
-        if name not in outputs:
-            raise ModelContractError(f"{where}: expected an output named {name!r}, the model has "
-                                     f"{sorted(outputs)}")
-    vshape = outputs[OUTPUT_VERTICES].shape
-    if len(vshape) != 3 or vshape[2] != 3 or (n_nodes is not None and isinstance(vshape[1], int)
-                                              and vshape[1] != n_nodes):
-        raise ModelContractError(f"{where}: output {OUTPUT_VERTICES!r} must be [N, "
-                                 f"{n_nodes or 'n'}, 3], the model has {vshape}")
-    meta = dict(session.get_modelmeta().custom_metadata_map)
-    if META_MESH_HASH not in meta:
-        raise ModelContractError(f"{where}: metadata {META_MESH_HASH!r} is missing; export the "
-                                 "model with the pad's content hash in its metadata")
-    if expected_mesh_hash is not None and meta[META_MESH_HASH] != expected_mesh_hash:
-        raise ModelContractError(
-            f"{where}: its mesh hash {meta[META_MESH_HASH][:16]}... differs from the sensor "
-            f"family's pad mesh {expected_mesh_hash[:16]}...; this model was trained for another "
-            "mesh - use the model of this family, or a plugin made for that mesh")
-    return meta
+__all__ = ["MeshPrediction", "MeshPredictor", "MeshTopology", "ModelContractError"]
 
 
 # ------------------------------------------------------------------------------------ results
-@dataclass(frozen=True)
-class MeshTopology:
-    """The fixed mesh every prediction shares (sensor frame, mm).
-
-    rest_vertices_mm : (n, 3) float64 (exact: the mesh hash is computed from it). tets : (m, 4) int32, positively oriented.
-    surface_faces : (f, 3) int32, all outer faces, outward normals.
-    sensing_faces : (t, 3) int32, faces of the sensing (top) surface, normals +z.
-    sensing_nodes : (k,) int64, nodes of the sensing surface. mesh_hash : content hash.
-    """
-
-    rest_vertices_mm: np.ndarray
-    tets: np.ndarray
-    surface_faces: np.ndarray
-    sensing_faces: np.ndarray
-    sensing_nodes: np.ndarray
-    mesh_hash: str
-
-    @classmethod
-    def from_pad(cls, pad: str = "gelslim", version: int | None = None) -> MeshTopology:
-        from tactile_deploy.pad.asset import load_pad
-
-        mesh = load_pad(pad, version)
-        return cls(mesh.vertices.astype(np.float64), mesh.tets.astype(np.int32),
-                   mesh.boundary_faces.astype(np.int32), mesh.sensing_faces.astype(np.int32),
-                   mesh.sensing_nodes.astype(np.int64), mesh.content_hash)
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the topology file of the ONNX contract (.npz, atomic)."""
-        from tactile_deploy.atomic import write_npz
-
-        write_npz(path, rest_vertices_mm=self.rest_vertices_mm, tets=self.tets,
-                  surface_faces=self.surface_faces, sensing_faces=self.sensing_faces,
-                  sensing_nodes=self.sensing_nodes.astype(np.int32),
-                  mesh_hash=np.array(self.mesh_hash))
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> MeshTopology:
-        with np.load(path, allow_pickle=False) as z:
-            return cls(z["rest_vertices_mm"].astype(np.float64), z["tets"], z["surface_faces"], z["sensing_faces"],
-                       z["sensing_nodes"].astype(np.int64), str(z["mesh_hash"]))
-
-
 @dataclass(frozen=True)
 class MeshPrediction:
     """Model outputs for a batch (or, when ``batched`` is False, one input).
@@ -238,7 +92,7 @@ class MeshPredictor:
     expected_mesh_hash : refuse a model whose metadata names another mesh (None: the pad's).
     pad, pad_version : the pad asset whose vertex order the model outputs.
     pipeline : :class:`ImagingPipeline` for :meth:`predict_frame` (None: depth input only).
-    threads : onnxruntime intra-op threads. providers : see :func:`choose_providers`.
+    threads : onnxruntime intra-op threads. providers : see :func:`tactile_deploy.onnx_runtime.session.choose_providers`.
     warmup : number of warm-up runs at construction (first runs allocate and are slow).
     ood_threshold : override of the model's ``ood_threshold`` metadata.
     """
@@ -281,8 +135,6 @@ class MeshPredictor:
         """Predictor of a sensor plugin (by name, folder, or a loaded
         :class:`~tactile_deploy.runtime.plugins.SensorPlugin`), with its imaging pipeline.
         ``adapted``: use the plugin's adapted model (default: when it has one)."""
-        from tactile_deploy.runtime.plugins import SensorPlugin
-
         plugin = SensorPlugin.load(plugin)
         m = plugin.manifest
         model_path = plugin.model_path(adapted)

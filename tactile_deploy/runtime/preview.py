@@ -13,6 +13,7 @@ import math
 import cv2
 import numpy as np
 
+from tactile_deploy.atomic import atomic_path
 from tactile_deploy.raster import RasterGrid, rasterize_triangles
 
 
@@ -98,7 +99,6 @@ def compose_preview(depth_mm: np.ndarray, mesh_rgb: np.ndarray, lines: list[str]
 
 def write_png(path, rgb: np.ndarray) -> None:
     """Write an RGB image as PNG (atomic)."""
-    from tactile_deploy.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):

@@ -1,7 +1,11 @@
 """Stream predicted meshes to other processes over ZeroMQ (PUB/SUB).
 
-``MeshPublisher(address)`` binds a PUB socket (``tcp://*:5555``, ``tcp://127.0.0.1:5555``,
-``ipc:///tmp/tactile.sock``); any number of SUB sockets connect to it. Slow subscribers lose
+``MeshPublisher(address)`` binds a PUB socket; any number of SUB sockets connect to it. The
+address (:func:`bind_address`): a port (``5555``), ``tcp://:5555`` or ``tcp://localhost:5555``
+bind to the loopback interface, 127.0.0.1, so only programs on this computer receive the meshes;
+``tcp://*:5555`` (every interface) or ``tcp://192.168.1.20:5555`` (one interface) publish to the
+network, as named; ``ipc:///tmp/tactile.sock`` is a local socket file. Nothing is encrypted or
+authenticated: whoever reaches the address receives the stream. Slow subscribers lose
 messages rather than slow the sensor down (send high-water mark ``hwm`` messages, never blocks).
 
 Message format, version 1. Every message is a ZeroMQ multipart message::
@@ -51,6 +55,20 @@ class PublishError(RuntimeError):
     """The publisher cannot bind its address (the message says which and what to do)."""
 
 
+def bind_address(address: str) -> str:
+    """The ZeroMQ address to bind for ``--publish ADDRESS``: loopback unless the address names
+    another interface (module docstring); checked by :func:`check_address`."""
+    a = address.strip()
+    if a.isdigit():
+        a = f"tcp://127.0.0.1:{a}"
+    elif a.startswith("tcp://:"):
+        a = "tcp://127.0.0.1:" + a[len("tcp://:"):]
+    elif a.startswith("tcp://localhost:"):
+        a = "tcp://127.0.0.1:" + a[len("tcp://localhost:"):]
+    check_address(a)
+    return a
+
+
 def check_address(address: str) -> None:
     """Refuse a ``tcp://`` address whose port is not 1-65535 or ``*`` (any free port), before any
     socket is made: ZeroMQ would bind another port (65536 + n binds n) without a word."""
@@ -77,7 +95,7 @@ class MeshPublisher:
                  topology_every_s: float = 2.0, context=None):
         import zmq
 
-        check_address(address)
+        address = bind_address(address)
         self.address = address
         self.sensor = sensor
         self.topology = topology

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_deploy.runtime.pipeline import FrameError, Laps, frame_to_mesh
+from tactile_deploy.runtime.sinks import FrameResult
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,7 @@ class RunSummary:
     reconnects: int = 0
     meshes_written: int = 0
     meshes_skipped: int = 0
+    meshes_skipped_reasons: dict = field(default_factory=dict)
     write_error: str | None = None
     previews_written: int = 0
     published: int = 0
@@ -95,6 +97,8 @@ class RunSummary:
     stage_p50_ms: dict = field(default_factory=dict)
     last_total_force_n: float | None = None
     stopped_by: str = "end of source"
+    sinks: dict = field(default_factory=dict)
+    source_settings: dict = field(default_factory=dict)
 
 
 class _Ring:
@@ -114,21 +118,62 @@ class _Ring:
         return float(np.percentile(v, q)) if len(v) else None
 
 
+#: Files a run writes into --out (glob patterns); ``--overwrite`` removes these first.
+RUN_OUTPUTS = ("mesh_[0-9]*.ply", "mesh_[0-9]*.obj", "mesh_[0-9]*.glb", "mesh_[0-9]*.vtu",
+               "mesh_[0-9]*.npz", ".mesh_*.partial.*", "frames.csv", ".frames.csv.partial",
+               "run.json", ".run.*.partial.json", "preview.png", "preview_peak.png",
+               ".preview*.partial.png")
+#: The folder ``--record`` writes raw frames into.
+RECORD_FOLDER = "frames"
+
+
+def clear_previous_run(path: Path) -> int:
+    """Remove what an earlier run wrote into ``path`` (:data:`RUN_OUTPUTS`, and the raw frames
+    folder of ``--record`` when it holds only a recording); other files stay. Returns the
+    number of files removed."""
+    import shutil
+
+    removed = 0
+    for pattern in RUN_OUTPUTS:
+        for p in path.glob(pattern):
+            if p.is_file():
+                p.unlink()
+                removed += 1
+    rec = path / RECORD_FOLDER
+    if rec.is_dir():
+        files = list(rec.iterdir())
+        ours = [p for p in files if p.name == "timestamps.csv"
+                or (p.name.startswith(("frame_", ".frame_")) and p.suffix == ".png")]
+        if len(ours) == len(files):
+            shutil.rmtree(rec)
+            removed += len(files)
+        else:
+            log.warning("%s holds files --record did not write; left as it is", rec)
+    return removed
+
+
 def prepare_out_dir(path: Path, overwrite: bool = False, ask=None) -> Path:
     """Create or check an output folder: never write into a folder holding files unless the
-    user agrees (``ask(question) -> bool``, or ``overwrite``); check it is writable."""
+    user agrees (``ask(question) -> bool``, or ``overwrite``), and then remove the previous
+    run's files (:func:`clear_previous_run`) so the folder holds this run only; check it is
+    writable."""
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise RunError(f"--out {path} is a file, not a folder; choose a folder name")
     if path.is_dir():
         existing = [p for p in path.iterdir()]
         if existing and not overwrite:
-            question = (f"{path} already holds {len(existing)} file(s); write into it and replace "
-                        "files of the same names?")
+            question = (f"{path} already holds {len(existing)} file(s); remove the previous "
+                        "run's meshes, frames.csv, run.json, previews and recorded frames and "
+                        "write there (other files stay)?")
             if ask is None or not ask(question):
                 raise RunError(f"{path} already holds {len(existing)} file(s) (e.g. "
                                f"{existing[0].name}); choose another --out, or pass --overwrite "
-                               "to write into it")
+                               "to replace the previous run's files there")
+        if existing:
+            n = clear_previous_run(path)
+            if n:
+                log.warning("removed %d file(s) of the previous run from %s", n, path)
     else:
         try:
             path.mkdir(parents=True)
@@ -151,7 +196,7 @@ class Runner:
     ``status(text)`` receives a live status line every ``status_every_s``."""
 
     def __init__(self, predictor, source, options: RunOptions | None = None, forces=None,
-                 publisher=None, status=None, sensor: str | None = None):
+                 publisher=None, status=None, sensor: str | None = None, sinks=()):
         self.predictor = predictor
         self.source = source
         self.opt = options or RunOptions()
@@ -159,6 +204,7 @@ class Runner:
             raise RunError(f"--every must be >= 1, got {self.opt.every}")
         self.forces = forces
         self.publisher = publisher
+        self.sinks = list(sinks)          # FrameSink: recordings, live view (runtime/sinks.py)
         self.status = status
         self.sensor = sensor or getattr(getattr(predictor, "plugin", None), "name", "sensor")
         self.summary = RunSummary(self.sensor, getattr(source, "name", str(source)))
@@ -167,16 +213,21 @@ class Runner:
         self._lat = _Ring()
         self._stages: dict[str, _Ring] = {}
         self._consecutive_bad = 0
+        self._stop = threading.Event()
         self._in_ood = False
         self._last_status = 0.0
         self._last_preview = -1e18
         self._t0 = time.monotonic()
         # frame times of the last 2 s, at most 256 frames (fps); bounded so memory does not follow the frame rate
         self._recent: deque[float] = deque(maxlen=256)
-        self._csv = None
-        self._csv_tmp = None
+        self._frame_log = None
         self._last = None
         self._peak = None
+
+    @property
+    def _wants_pressure(self) -> bool:
+        """Per-node pressures cost a dense product per frame: only when someone sends them."""
+        return self.publisher is not None or any(s.wants_pressure for s in self.sinks)
 
     # ------------------------------------------------------------------ setup / teardown
     def _open_outputs(self) -> None:
@@ -186,27 +237,28 @@ class Runner:
             from tactile_deploy.runtime.writers import MeshWriter
 
             self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
-            self._csv_tmp = o.out_dir / ".frames.csv.partial"
-            self._csv = open(self._csv_tmp, "w", encoding="utf-8")
-            self._csv.write("frame_index,t_capture_ns,latency_ms,ood_score,in_distribution,"
-                            "total_normal_force_n,source_label\n")
+            from tactile_deploy.runtime.frame_log import FrameLog
+
+            self._frame_log = FrameLog(o.out_dir, self.writer)
         if o.view:
             from tactile_deploy.runtime.preview import MeshRenderer
 
             if o.preview_dir is None:
                 o.preview_dir = o.out_dir
             self.renderer = MeshRenderer(topo, max_mm=o.colour_max_mm)
+        for sink in self.sinks:
+            sink.start(live=source_is_live(self.source))
 
     def _close_outputs(self) -> None:
         if self.writer is not None:
             self.writer.close()
             self.summary.meshes_written = self.writer.written
             self.summary.meshes_skipped = self.writer.skipped
+            self.summary.meshes_skipped_reasons = dict(self.writer.skipped_reasons)
             self.summary.write_error = self.writer.error
-        if self._csv is not None:
+        if self._frame_log is not None:
             try:
-                self._csv.close()
-                os.replace(self._csv_tmp, self.opt.out_dir / "frames.csv")
+                self._frame_log.close()
             except OSError as e:
                 log.error("could not finish %s: %s", self.opt.out_dir / "frames.csv", e)
         if self.renderer is not None and self._last is not None:
@@ -216,6 +268,9 @@ class Runner:
         if self.publisher is not None:
             self.summary.published = self.publisher.seq
             self.publisher.close()
+        for sink in self.sinks:
+            sink.close()
+            self.summary.sinks[sink.name] = sink.report()
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> RunSummary:
@@ -230,6 +285,9 @@ class Runner:
                 while True:
                     if self.opt.max_frames is not None and self.summary.frames >= self.opt.max_frames:
                         self.summary.stopped_by = "max frames"
+                        break
+                    if self._stop.is_set():
+                        self.summary.stopped_by = "stopped"
                         break
                     frame = self.source.read()
                     if frame is None:
@@ -256,6 +314,21 @@ class Runner:
         self._finish(stats)
         return self.summary
 
+    def _mesh_dropped(self, index: int) -> str:
+        """The reason the mesh of frame ``index`` was not queued; warned about (first, then
+        every 100th), counted in the summary."""
+        w = self.writer
+        reason = max(w.skipped_reasons, key=w.skipped_reasons.get) if w.skipped_reasons else "?"
+        if w.skipped == 1 or w.skipped % 100 == 0:
+            log.warning("mesh of frame %d not written (%d so far): %s%s", index, w.skipped,
+                        reason, "; write fewer --format or a larger --every"
+                        if reason.startswith("writer queue") else "")
+        return reason
+
+    def stop(self) -> None:
+        """Ask a run going on in another thread to end after the current frame (as Ctrl-C)."""
+        self._stop.set()
+
     def _finish(self, stats) -> None:
         held: list[int] = []
         with _interrupts_held(held):
@@ -269,6 +342,7 @@ class Runner:
         s.unreadable_frames = stats.unreadable
         s.unreadable_files = list(getattr(self.source, "unreadable_files", []))
         s.reconnects = stats.reconnects
+        s.source_settings = dict(getattr(self.source, "settings", None) or {})
         s.wall_s = time.monotonic() - self._t0
         s.fps = s.frames / s.wall_s if s.wall_s > 0 else 0.0
         s.latency_p50_ms = self._lat.pct(50)
@@ -304,9 +378,8 @@ class Runner:
         self._consecutive_bad = 0
         force = None
         if self.forces is not None:
-            # per-node pressures cost a dense product; only the publisher sends them
             force = self.forces.estimate(pred.vertices_mm, clip_tension=o.clip_tension,
-                                         pressure=self.publisher is not None)
+                                         pressure=self._wants_pressure)
             laps.lap("forces")
         captured_ns = frame.t_mono_ns if due_ns is None else max(frame.t_mono_ns, due_ns)
         latency_ms = (time.monotonic_ns() - captured_ns) / 1e6
@@ -320,14 +393,26 @@ class Runner:
                 pressure_kpa=None if force is None or not force.pressure_kpa.size
                 else force.pressure_kpa)
             laps.lap("publish")
+        if self.sinks:
+            result = FrameResult(frame, pred, force, latency_ms)
+            for sink in self.sinks:
+                sink.consume(result)
+            laps.lap("sinks")
+        mesh_status = "no mesh files" if self.writer is None else "not requested"
         if self.writer is not None and frame.index % o.every == 0:
-            self.writer.submit(frame.index, pred.vertices_mm,
-                               block=getattr(self.source, "finite", False))
-        if self._csv is not None:
-            f_txt = "" if force is None else f"{force.total_normal_force_n:.6g}"
-            label = "" if frame.label is None else _csv_field(frame.label)
-            self._csv.write(f"{frame.index},{frame.t_wall_ns},{latency_ms:.4f},"
-                            f"{pred.ood_score:.6g},{int(pred.in_distribution)},{f_txt},{label}\n")
+            queued = self.writer.submit(frame.index, pred.vertices_mm,
+                               block=not source_is_live(self.source),
+                               depth_mm=pred.depth_mm,
+                               metadata={"sensor": self.sensor, "frame_index": frame.index,
+                                         "t_capture_ns": frame.t_wall_ns,
+                                         "t_source_ns": frame.t_source_ns,
+                                         "source_label": frame.label,
+                                         "ood_score": float(pred.ood_score),
+                                         "total_normal_force_n": None if force is None
+                                         else float(force.total_normal_force_n)})
+            mesh_status = None if queued else f"dropped: {self._mesh_dropped(frame.index)}"
+        if self._frame_log is not None:
+            self._frame_log.add(frame, pred, force, latency_ms, mesh_status)
         s.frames += 1
         if force is not None:
             s.last_total_force_n = float(force.total_normal_force_n)
@@ -357,9 +442,26 @@ class Runner:
         force = "" if s.last_total_force_n is None else f"  force {s.last_total_force_n:6.2f} N"
         p50 = self._lat.pct(50)
         latency = "   -  " if p50 is None else f"{p50:6.2f}"
-        return (f"{self.sensor}: frame {s.frames}  {fps:7.1f} fps  latency p50 "
-                f"{latency} ms{force}  dropped {self.source.stats.dropped}  "
+        return (f"{self.sensor}: frame {s.frames}{self._progress(fps)}  {fps:7.1f} fps  "
+                f"latency p50 {latency} ms{force}  dropped {self.source.stats.dropped}  "
                 f"ood {s.ood_frames}  bad {s.bad_frames}")
+
+    def expected_frames(self) -> int | None:
+        """Frames the run will process when it ends by itself (the source's count, at most
+        ``max_frames``), None when unknown (a camera without --max-frames, a looped clip)."""
+        n = getattr(self.source, "frame_count", None)
+        m = self.opt.max_frames
+        if n is None:
+            return m
+        return n if m is None else min(n, m)
+
+    def _progress(self, fps: float) -> str:
+        total = self.expected_frames()
+        if not total:
+            return ""
+        done = self.summary.frames + self.summary.bad_frames
+        eta = f", ETA {max(total - done, 0) / fps:.0f} s" if fps > 0 else ""
+        return f"/{total} ({100.0 * done / total:.0f} %{eta})"
 
     def _track_ood(self, index: int, pred) -> None:
         if not pred.in_distribution:
@@ -399,11 +501,11 @@ class Runner:
             self.renderer = None
 
 
-def _csv_field(text: str) -> str:
-    """``text`` as one CSV field (quoted when it holds a comma, quote or line break)."""
-    if any(c in text for c in ',"\n\r'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
+def source_is_live(source) -> bool:
+    """A live source (a camera) keeps capturing while the loop waits, so the loop must not wait
+    for a disk; a recording (even looped) loses nothing by waiting."""
+    live = getattr(source, "live", None)
+    return bool(live) if live is not None else not getattr(source, "finite", True)
 
 
 @contextlib.contextmanager
@@ -444,6 +546,12 @@ def summary_text(s: RunSummary) -> str:
     if s.latency_p50_ms is not None:
         lines += [f"  latency capture->mesh p50 {s.latency_p50_ms:.2f} ms, p95 {s.latency_p95_ms:.2f} ms",
                   f"  stages p50 (ms): {stages}"]
+    got = s.source_settings.get("delivered")
+    if got:
+        lines.append(f"  camera delivered {got['width_px']}x{got['height_px']} px "
+                     f"{got.get('fourcc') or ''} at {got['fps']:g} fps, exposure "
+                     f"{got['exposure']:g} (auto {got['auto_exposure']:g}), white balance "
+                     f"{got['white_balance_k']:g} K (auto {got['auto_white_balance']:g})")
     unreadable = ""
     if s.unreadable_frames:
         names = ", ".join(s.unreadable_files[:5]) + (" ..." if len(s.unreadable_files) > 5 else "")
@@ -451,13 +559,23 @@ def summary_text(s: RunSummary) -> str:
     lines.append(f"  dropped {s.dropped_frames}, reconnects {s.reconnects}, refused {s.bad_frames}"
                  f"{unreadable}, outside training range {s.ood_frames}")
     if s.meshes_written or s.write_error or s.meshes_skipped:
-        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}")
+        why = "; ".join(f"{n} {r}" for r, n in s.meshes_skipped_reasons.items())
+        lines.append(f"  meshes written {s.meshes_written}, skipped {s.meshes_skipped}"
+                     + (f" ({why})" if why else ""))
     if s.write_error:
         lines.append(f"  write error: {s.write_error}")
     if s.previews_written:
         lines.append(f"  previews written {s.previews_written}")
     if s.published:
         lines.append(f"  meshes published {s.published}")
+    for name, rep in s.sinks.items():
+        dropped = sum(rep.get("dropped", {}).values())
+        why = "; ".join(f"{n} {reason}" for reason, n in rep.get("dropped", {}).items())
+        lines.append(f"  {name}: {rep.get('handled', 0)} frames" +
+                     (f" ({rep['file']})" if rep.get("file") else "") +
+                     (f", dropped {dropped}: {why}" if dropped else ""))
+        if rep.get("error"):
+            lines.append(f"  {name} error: {rep['error']}")
     return "\n".join(lines)
 
 

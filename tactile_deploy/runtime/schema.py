@@ -1,7 +1,7 @@
 """The committed JSON Schema of ``plugin.json`` (``manifest.schema.json`` beside this module).
 
 ``python -m tactile_deploy.runtime.schema`` rewrites it from
-:class:`~tactile_deploy.runtime.plugins.PluginManifest`; a test fails when they drift apart.
+:class:`~tactile_deploy.runtime.plugins.manifest.PluginManifest`; a test fails when they drift apart.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from tactile_deploy.runtime.plugins import manifest_json_schema
+from tactile_deploy.runtime.plugins.manifest import manifest_json_schema
 
 #: Where the schema is committed.
 SCHEMA_PATH = Path(__file__).resolve().parent / "manifest.schema.json"

@@ -23,6 +23,7 @@ from tactile_deploy.sensors.config import (
     VirtualSensorConfig,
     load_sensor_config,
 )
+from tactile_deploy.sensors.virtual import VirtualSensor
 
 
 class UnknownSensorError(KeyError):
@@ -51,6 +52,5 @@ def sensor_config(name_or_path: str | Path) -> VirtualSensorConfig:
 
 def load_sensor(name_or_path: str | Path, simulator=None):
     """A :class:`~tactile_deploy.sensors.virtual.VirtualSensor` by name or JSON path."""
-    from tactile_deploy.sensors.virtual import VirtualSensor
 
     return VirtualSensor(sensor_config(name_or_path), simulator=simulator)

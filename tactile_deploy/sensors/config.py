@@ -20,9 +20,11 @@ from tactile_deploy.atomic import write_text
 from tactile_deploy.fem.material import Material
 from tactile_deploy.jsonfile import read_json
 from tactile_deploy.optics.model import OpticsModel, format_validation_error
+from tactile_deploy.sensors.effects import UnknownEffectError, effect_class
+from tactile_deploy.shipped import asset_dir
 
 FORMAT_VERSION = 1
-SENSOR_DIR = Path(__file__).resolve().parent.parent / "assets" / "sensors"
+SENSOR_DIR = asset_dir("sensors")
 SCHEMA_PATH = SENSOR_DIR / "virtual_sensor.schema.json"
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -47,7 +49,6 @@ class EffectSpec(BaseModel):
         name = info.data.get("name")
         if name is None:
             return v
-        from tactile_deploy.sensors.effects import UnknownEffectError, effect_class
 
         try:
             effect_class(name).Params(**v)

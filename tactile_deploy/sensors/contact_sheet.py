@@ -12,6 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.atomic import atomic_path
+from tactile_deploy.indenters import ContactPose
+from tactile_deploy.indenters.pin_grid import PinGrid
+from tactile_deploy.sensors.catalog import list_sensors, load_sensor
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -20,11 +25,6 @@ def contact_sheet(path: Path, sensors=None, seed: int = 0) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tactile_deploy.atomic import atomic_path
-    from tactile_deploy.indenters import ContactPose
-    from tactile_deploy.sensors.catalog import list_sensors, load_sensor
-    from tactile_deploy.sensors.virtual import PinGrid
 
     names = list(sensors or list_sensors())
     contacts = [("sphere_r4", ContactPose(x_mm=1.0, y_mm=0.5, depth_mm=0.6), "sphere r 4 mm"),

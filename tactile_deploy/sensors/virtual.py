@@ -18,9 +18,9 @@ fine depth map the frame was shaded from, the deformed mesh and the force.
 As a frame source the sensor follows the LeRobot camera pattern: ``connect()`` / ``read()`` /
 ``disconnect()`` (or ``with sensor:``), frames at the camera's ``fps`` from a scripted contact
 sequence (:class:`PressScript`), optionally paced to the wall clock; :meth:`VirtualSensor.frames`
-is the same as a generator of ``(timestamp_s, frame)``. Recording methods make the inputs of the
-calibrations: :meth:`record_reference`, :meth:`record_ball_presses` (a FOTS-style press set with
-contact circles) and :meth:`record_target_frames` (a pressed pin grid for the camera mapping).
+is the same as a generator of ``(timestamp_s, frame)``; :meth:`record_reference` averages
+no-contact frames. The recordings the calibrations take as input (FOTS-style ball presses, a
+pressed pin grid) are made by :mod:`calibration.virtual_recordings`.
 
 Frames are RGB (H, W, 3) uint8 in raw camera pixels; poses and points are in the sensor frame
 (mm, origin at the centre of the sensing surface, z out of the gel).
@@ -31,15 +31,24 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from tactile_deploy.indenters import ContactPose
+from tactile_deploy.camera.depth import DepthCamera
+from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
+from tactile_deploy.indenters import ContactPose, get_indenter
+from tactile_deploy.optics.render import OpticsRenderer, grid_centres, grid_for_camera
+from tactile_deploy.optics.surface import SurfaceBuilder
 from tactile_deploy.sensors.config import VirtualSensorConfig
 from tactile_deploy.sensors.effects import get_effect
+from tactile_deploy.simulation.contact import (
+    ContactError,
+    ContactSample,
+    get_camera,
+    get_simulator,
+)
 
 #: Deepest indentation (mm) a virtual sensor accepts, as for ``simulate`` (half the gel).
 MAX_DEPTH_MM = 1.5
@@ -140,108 +149,6 @@ class PressScript:
         return None, 0.0
 
 
-# ----------------------------------------------------------------------------- targets
-class PinGrid:
-    """A rigid plate with a square lattice of hemispherical pins (calibration target).
-
-    ``shape`` = (columns, rows) pins at ``pitch_mm``, centred on the indenter origin, rows along
-    indenter x; each pin a sphere cap of ``pin_radius_mm``. Duck-types the parts of
-    :class:`tactile_deploy.indenters.Indenter` the simulator uses (``intrusion_mm``,
-    ``footprint_radius_mm``, ``name``).
-    """
-
-    kind = "target"
-
-    def __init__(self, pitch_mm: float = 2.5, shape: tuple[int, int] = (9, 7),
-                 pin_radius_mm: float = 0.75):
-        if not 0 < 2 * pin_radius_mm < pitch_mm:
-            raise ValueError(f"pins of radius {pin_radius_mm} mm do not fit a {pitch_mm} mm pitch")
-        self.pitch_mm = float(pitch_mm)
-        self.shape = (int(shape[0]), int(shape[1]))
-        self.pin_radius_mm = float(pin_radius_mm)
-        self.name = f"pin_grid_{self.shape[0]}x{self.shape[1]}_p{pitch_mm:g}"
-        half = np.array([(self.shape[0] - 1) / 2.0, (self.shape[1] - 1) / 2.0]) * self.pitch_mm
-        self.footprint_radius_mm = float(np.hypot(*half) + pin_radius_mm)
-
-    def pin_centres_mm(self, pose: ContactPose) -> np.ndarray:
-        """Pin centres in the sensor frame, (k, 2) mm, row-major (rows along +y)."""
-        from tactile_deploy.indenters import indenter_to_sensor
-
-        i = np.arange(self.shape[0]) - (self.shape[0] - 1) / 2.0
-        j = np.arange(self.shape[1]) - (self.shape[1] - 1) / 2.0
-        gx, gy = np.meshgrid(i * self.pitch_mm, j * self.pitch_mm)
-        q = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
-        return indenter_to_sensor(q, pose)[:, :2]
-
-    def intrusion_mm(self, points_xy_sensor_mm, pose: ContactPose) -> np.ndarray:
-        """Intrusion (k,) mm below z = 0 at sensor points (k, 2); -inf between pins."""
-        from tactile_deploy.indenters import sensor_to_indenter_xy
-
-        q = sensor_to_indenter_xy(np.asarray(points_xy_sensor_mm, np.float64), pose)
-        p = self.pitch_mm
-        lim = (np.array(self.shape) - 1) / 2.0
-        idx = np.clip(np.round(q / p), -lim, lim)
-        r = np.hypot(*(q - idx * p).T)
-        big = self.pin_radius_mm
-        with np.errstate(invalid="ignore"):
-            h = np.where(r < big, big - np.sqrt(np.maximum(big * big - r * r, 0.0)), np.inf)
-        return pose.depth_mm - h
-
-
-@dataclass
-class BallPressRecording:
-    """Ball presses of a virtual sensor, in the format of the real FOTS recordings.
-
-    reference : (H, W, 3) uint8; frames : (N, H, W, 3) uint8; circles_px : (N, 3) float64
-    (column, row, contact radius) raw px; poses : N commanded poses; contact_radius_mm : (N,);
-    ball_radius_mm; depth_mm : (N, 128, 128) float32 true depth maps (evaluation only).
-    """
-
-    reference: np.ndarray
-    frames: np.ndarray
-    circles_px: np.ndarray
-    poses: list
-    contact_radius_mm: np.ndarray
-    ball_radius_mm: float
-    depth_mm: np.ndarray
-
-    def save(self, folder: str | Path) -> None:
-        """Write ``background.png``, ``0001.png`` ... and ``annotate.csv`` (FOTS layout)."""
-        import cv2
-
-        from tactile_deploy.atomic import atomic_path, write_text
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-
-        def png(path, img):
-            with atomic_path(path) as tmp:
-                if not cv2.imwrite(str(tmp), np.ascontiguousarray(img[..., ::-1])):
-                    raise OSError(f"could not write {path}")
-
-        png(folder / "background.png", self.reference)
-        lines = ["img_names,center_x,center_y,radius"]
-        for i, (img, c) in enumerate(zip(self.frames, self.circles_px)):
-            name = f"{i + 1:04d}.png"
-            png(folder / name, img)
-            lines.append(f"{name},{c[0]:.2f},{c[1]:.2f},{c[2]:.2f}")
-        write_text(folder / "annotate.csv", "\n".join(lines) + "\n")
-
-
-@dataclass
-class TargetRecording:
-    """Frames of a pressed pin grid: ``reference`` and ``frames`` (N, H, W, 3) uint8, the pin
-    centres ``pins_mm`` (N, k, 2) in the sensor frame and their images ``pins_px`` (N, k, 2) raw
-    px (through the sensor's true camera mapping), the ``poses`` and the ``target``."""
-
-    reference: np.ndarray
-    frames: np.ndarray
-    pins_mm: np.ndarray
-    pins_px: np.ndarray
-    poses: list
-    target: PinGrid
-
-
 # ------------------------------------------------------------------------------ sensor
 class VirtualSensor:
     """A virtual tactile sensor built from a :class:`VirtualSensorConfig`.
@@ -284,7 +191,6 @@ class VirtualSensor:
     @property
     def simulator(self):
         if self._simulator is None:
-            from tactile_deploy.simulation.contact import get_simulator
 
             self._simulator = get_simulator(self.config.material, self.config.pad)
         return self._simulator
@@ -293,7 +199,6 @@ class VirtualSensor:
     def renderer(self):
         """The :class:`~tactile_deploy.optics.OpticsRenderer` (rest surface from the effects)."""
         if self._renderer is None:
-            from tactile_deploy.optics.render import OpticsRenderer, grid_for_camera
 
             grid = grid_for_camera(self.optics)
             rest = self._rest_height_grid(grid)
@@ -304,7 +209,6 @@ class VirtualSensor:
     @property
     def surface(self):
         if self._surface is None:
-            from tactile_deploy.optics.surface import SurfaceBuilder
 
             self._surface = SurfaceBuilder(self.simulator.mesh, self.renderer.grid,
                                            smooth_mm=self.config.surface_smooth_mm)
@@ -316,8 +220,6 @@ class VirtualSensor:
         _ = self.renderer, self.surface
 
     def _rest_height_grid(self, grid) -> np.ndarray:
-        from tactile_deploy.optics.render import grid_centres
-
         x, y = grid_centres(grid)
         xy = np.stack([x.ravel(), y.ravel()], axis=1)
         return self.rest_height_mm(xy).reshape(x.shape).astype(np.float32)
@@ -341,7 +243,6 @@ class VirtualSensor:
     def indenter(self, name: str):
         """Library indenter by name or mesh path (cached)."""
         if name not in self._indenters:
-            from tactile_deploy.indenters import get_indenter
 
             self._indenters[name] = get_indenter(name)
         return self._indenters[name]
@@ -353,7 +254,7 @@ class VirtualSensor:
 
     def press(self, indenter, pose: ContactPose, rng: np.random.Generator | None = None,
               truth: bool = True) -> SensorFrame:
-        """Frame of ``indenter`` (Indenter, PinGrid or library name) pressed at ``pose``.
+        """Frame of ``indenter`` (Indenter, :class:`~tactile_deploy.indenters.pin_grid.PinGrid` or library name) pressed at ``pose``.
 
         rng : noise (and per-frame camera effects) generator; None renders noise-free.
         truth : also return the standard 128 x 128 depth map and the mesh.
@@ -388,8 +289,6 @@ class VirtualSensor:
         ``simulate`` format) with the sensor's frame in ``frame``; ``depth_detail`` is the depth
         the frame was shaded from, sampled at the standard depth grid's pixel centres."""
         from scipy.ndimage import map_coordinates
-
-        from tactile_deploy.simulation.contact import ContactSample, get_camera
 
         if isinstance(indenter, str):
             indenter = self.indenter(indenter)
@@ -442,7 +341,6 @@ class VirtualSensor:
         Raises :class:`tactile_deploy.simulation.contact.ContactError` for depths beyond
         ``MAX_DEPTH_MM`` or poses off the pad.
         """
-        from tactile_deploy.simulation.contact import ContactError
 
         if isinstance(indenter, str):
             indenter = self.indenter(indenter)
@@ -493,7 +391,6 @@ class VirtualSensor:
 
     def _render_depth(self, vertices_mm: np.ndarray) -> np.ndarray:
         if self._depth_camera is None:
-            from tactile_deploy.camera.depth import DepthCamera
 
             self._depth_camera = DepthCamera()
         return self._depth_camera.render(self.simulator.mesh, vertices_mm).depth_mm
@@ -606,7 +503,6 @@ class VirtualSensor:
         The bounding box of the view, shrunk about its centre until its outline images inside
         the frame (bisection, to 1e-3 of its size).
         """
-        from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
 
         xy = self.renderer.pixel_xy_mm.reshape(-1, 2)
         lo, hi = xy.min(axis=0), xy.max(axis=0)
@@ -628,74 +524,3 @@ class VirtualSensor:
         hx, hy = a * half
         return (c[0] - hx + margin_mm, c[0] + hx - margin_mm, c[1] - hy + margin_mm,
                 c[1] + hy - margin_mm)
-
-    def record_ball_presses(self, n: int, radius_mm: float = 2.0,
-                            depth_range_mm: tuple[float, float] = (0.3, 1.0), seed: int = 0,
-                            margin_mm: float | None = None) -> BallPressRecording:
-        """``n`` presses of a ball at random places in the view (FOTS-style recording).
-
-        Contact circles: centre = image of the ball's axis through the sensor's true camera
-        mapping, radius = equivalent radius of the region where the gel touches the ball
-        (sqrt(area / pi)), converted with the mapping's mm per px at that point.
-        """
-        from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
-        from tactile_deploy.indenters import AnalyticSphere
-
-        ball = AnalyticSphere(radius_mm)
-        rng = np.random.default_rng([self.config.seed, seed, 0x62616C6C])
-        margin = 1.5 * radius_mm if margin_mm is None else margin_mm
-        x0, x1, y0, y1 = self.view_box_mm(margin)
-        if x1 <= x0 or y1 <= y0:
-            raise ValueError(f"a {radius_mm} mm ball with a {margin} mm margin does not fit the "
-                             "view; use a smaller ball or margin")
-        ref = self.record_reference(seed)
-        frames, circles, poses, radii, depths = [], [], [], [], []
-        g = self.renderer.grid
-        cell = g.pitch_x_mm * g.pitch_y_mm
-        geometry = self.simulator.mesh.geometry
-        for i in range(n):
-            for _ in range(1000):  # positions inside the view box and on the pad
-                x, y = float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))
-                if geometry.contains_xy(x, y, margin_mm=margin):
-                    break
-            else:
-                raise ValueError("no ball position lies both in the view and on the pad")
-            pose = ContactPose(x_mm=x, y_mm=y, depth_mm=float(rng.uniform(*depth_range_mm)))
-            out = self.press(ball, pose, np.random.default_rng([self.config.seed, seed, 1, i]))
-            # Contact: surface within 1 um of the ball.
-            reached = out.pose_reached
-            zi = -ball.intrusion_mm(self.surface.xy_mm.reshape(-1, 2), reached).reshape(
-                out.surface_depth_mm.shape)
-            height = self.renderer.rest_height_mm - out.surface_depth_mm
-            touching = np.isfinite(zi) & (height >= zi - 1e-3)
-            a_mm = math.sqrt(touching.sum() * cell / math.pi)
-            c = sensor_mm_to_pixels(np.array([[reached.x_mm, reached.y_mm],
-                                              [reached.x_mm + a_mm, reached.y_mm]]),
-                                    self.optics.camera)
-            frames.append(out.frame)
-            circles.append([c[0, 0], c[0, 1], float(np.hypot(*(c[1] - c[0])))])
-            poses.append(pose)
-            radii.append(a_mm)
-            depths.append(out.depth_mm)
-        return BallPressRecording(ref, np.stack(frames), np.array(circles), poses,
-                                  np.array(radii), float(radius_mm), np.stack(depths))
-
-    def record_target_frames(self, target: PinGrid | None = None,
-                             poses: Sequence[ContactPose] | None = None,
-                             seed: int = 0) -> TargetRecording:
-        """Frames of a pressed pin grid (default 9 x 7 pins, 2.5 mm pitch, 0.75 mm pins, centred,
-        0.35 mm deep) through the full optics, with the true pin positions in mm and px."""
-        from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
-
-        target = target or PinGrid()
-        poses = list(poses) if poses is not None else [ContactPose(depth_mm=0.35)]
-        ref = self.record_reference(seed)
-        frames, mm, px = [], [], []
-        for i, pose in enumerate(poses):
-            out = self.press(target, pose, np.random.default_rng([self.config.seed, seed, 2, i]),
-                             truth=False)
-            centres = target.pin_centres_mm(out.pose_reached)
-            frames.append(out.frame)
-            mm.append(centres)
-            px.append(sensor_mm_to_pixels(centres, self.optics.camera))
-        return TargetRecording(ref, np.stack(frames), np.stack(mm), np.stack(px), poses, target)

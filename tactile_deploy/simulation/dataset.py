@@ -55,6 +55,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from tactile_deploy.atomic import write_json, write_npz
 from tactile_deploy.fem.material import Material
+from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.simulation.contact import (
     DEPTH_DETAIL_MEANING,
     DEPTH_MEANING,
@@ -162,7 +163,6 @@ def shard_path(out_dir: Path, index: int) -> Path:
 
 def generate_shard(spec: DatasetSpec, index: int, out_dir: Path) -> ShardRecord:
     """Simulate and write shard ``index`` (atomic). Deterministic in (spec, index)."""
-    from tactile_deploy.indenters import ContactPose, get_indenter
 
     try:
         from threadpoolctl import threadpool_limits

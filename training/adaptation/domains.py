@@ -16,8 +16,8 @@ them.
 * ``gelslim1-novel`` (Real-Novel): the same with the 16 indenter STL files of
   ``../shared/data/indenters``, shapes the model never saw.
 * ``real-balls``: the 42 real GelSight ball presses of ``../shared/data/real``, through a plugin
-  calibrated on them (shading model of the same presses, its crop camera mapping); no truth
-  (:func:`real_ball_domain`).
+  calibrated on them (shading model of the same presses, its crop camera mapping; built by
+  ``python -m calibration.shading.real_gelsight``); no truth (:func:`real_ball_domain`).
 
 Domains are cached as ``.npz`` (:func:`load_or_make`); everything is seeded.
 """
@@ -181,63 +181,30 @@ def novel_indenters(shared_data: Path = SHARED_DATA) -> list[str]:
     return files
 
 
-#: Real ball presses: ball radius (mm) and scale (mm per px) of ../shared/data/real.
-REAL_BALL_RADIUS_MM = 2.35
-REAL_MM_PER_PX = 1 / 19.58
+#: Folder (inside a domain cache) of the plugin calibrated on the real ball presses.
+REAL_PLUGIN_FOLDER = "fots-gelsight"
 
 
-def real_plugin(folder: Path, shared_data: Path = SHARED_DATA):
-    """A plugin of the real GelSight of the ball presses, in ``folder``: crop camera mapping
-    (19.58 px/mm), shading model fitted on the presses themselves, the background as reference
-    frame and its depth as noise reference (kept: it is part of the sensor's signal), the
-    family's model. Returns the :class:`SensorPlugin`."""
-    import json
-
-    import cv2
-
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import load_presses
-    from tactile_deploy.imaging.shading import save_shading
+def real_ball_domain(work: Path) -> Domain:
+    """The 42 real ball presses as depth maps (no truth), through the plugin calibrated on them
+    in ``work/fots-gelsight`` (:func:`calibration.shading.real_gelsight.real_gelsight_plugin`
+    builds it; its demo clip holds the presses)."""
     from tactile_deploy.runtime.pipeline import ImagingPipeline
-    from tactile_deploy.runtime.plugins import SensorPlugin, crop_camera_mapping, write_plugin
-    from tactile_deploy.runtime.predictor import MeshTopology
-    from tactile_deploy.runtime.sources.npz import save_clip
+    from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+    from tactile_deploy.runtime.sources.factory import open_clip
 
-    d = Path(shared_data) / "real" / "fots_gelsight_ballpress"
-    if not (d / "annotate.csv").is_file():
-        raise FileNotFoundError(f"real ball presses not found in {d}")
-    presses = load_presses(d / "background.png", d, d / "annotate.csv")
-    model = fit_shading(presses, REAL_BALL_RADIUS_MM, REAL_MM_PER_PX).model
-    folder = Path(folder).resolve()
-    folder.mkdir(parents=True, exist_ok=True)
-    h, w = presses.shape
-    camera = crop_camera_mapping(w, h, REAL_MM_PER_PX)
-    save_shading(model, folder / "shading.npz")
-    cv2.imwrite(str(folder / "reference.png"), cv2.cvtColor(presses.reference, cv2.COLOR_RGB2BGR))
-    pipe = ImagingPipeline(camera, model, presses.reference, None, "keep")
-    np.save(folder / "noise_reference.npy", pipe.frame_to_depth(presses.reference))
-    save_clip(folder / "demo.npz", presses.frames, np.arange(len(presses.frames)) * 50_000_000)
-    topo = MeshTopology.from_pad()
-    topo.save(folder / "topology.npz")
-    write_plugin(folder, {
-        "name": "fots-gelsight", "description": "real GelSight-class sensor of the FOTS ball presses",
-        "family": {"name": "gelslim", "mesh_hash": topo.mesh_hash},
-        "camera": json.loads(camera.model_dump_json()),
-        "material": {"E_mpa": 0.3, "nu": 0.48}, "default_source": {"kind": "demo"},
-        "noise_handling": "keep"},
-        {"model": ROOT / "exported" / "gelslim_mesh.onnx", "shading": folder / "shading.npz",
-         "reference_frame": folder / "reference.png", "noise_reference": folder / "noise_reference.npy",
-         "demo_clip": folder / "demo.npz", "topology": folder / "topology.npz"}, overwrite=True)
-    return SensorPlugin.load(folder), presses
-
-
-def real_ball_domain(work: Path, shared_data: Path = SHARED_DATA) -> Domain:
-    """The 42 real ball presses as depth maps (no truth)."""
-    from tactile_deploy.runtime.pipeline import ImagingPipeline
-
-    plugin, presses = real_plugin(Path(work) / "fots-gelsight", shared_data)
+    folder = Path(work) / REAL_PLUGIN_FOLDER
+    try:
+        plugin = SensorPlugin.load(folder)
+    except PluginError as e:
+        raise FileNotFoundError(f"{e}; build the plugin of the real ball presses first: python -m "
+                                f"calibration.shading.real_gelsight --out {folder}") from None
     pipe = ImagingPipeline.from_plugin(plugin)
-    depth = np.stack([pipe.frame_to_depth(f) for f in presses.frames]).astype(np.float32)
+    depth = []
+    with open_clip(plugin.demo_clip_path(), name="the real ball presses") as clip:
+        while (frame := clip.read()) is not None:
+            depth.append(pipe.frame_to_depth(frame.image))
+    depth = np.stack(depth).astype(np.float32)
     return Domain("real-balls", depth, view_weight(plugin), np.array(["ball_r2.35"] * len(depth)),
                   description="42 real GelSight presses of a 2.35 mm ball (../shared/data/real)")
 

@@ -46,7 +46,7 @@ DEFAULTS = {"lr": 1e-4, "batch_size": 16.0, "steps": 200.0}
 
 
 def _sha(path: Path) -> str:
-    from tactile_deploy.runtime.plugins import file_sha256
+    from tactile_deploy.checksums import file_sha256
 
     return file_sha256(path)
 

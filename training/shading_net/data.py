@@ -1,7 +1,7 @@
 """Ball presses of virtual units on their imaging grids: features and true depth.
 
 For each unit: its imaging grid (the camera's view, cells of the model grid's pitch:
-:func:`calibration.camera.imaging_grid.imaging_grid`), the rectified no-contact frame, then
+:func:`tactile_deploy.imaging.imaging_grid.imaging_grid`), the rectified no-contact frame, then
 presses: half of them spheres (radii ``RADII_MM``, depth up to 1 mm and 0.6 R, centres anywhere
 with at least half the contact radius inside the view), half the indenter library's shapes
 (primitives and objects with edges, corners and fine relief: ``tactile-deploy indenters list``;
@@ -36,7 +36,7 @@ class UnitPresses:
 def unit_presses(config, n: int, rng: np.random.Generator, simulator=None) -> tuple[UnitPresses, object]:
     """``n`` ball presses of the virtual unit ``config``; returns (presses, the unit's simulator,
     to share with the next unit of the same pad)."""
-    from calibration.camera.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
     from tactile_deploy.imaging.learned_readout import FeatureMaker
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.indenters.library import list_indenters

@@ -24,19 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.learning.readout_network import export_onnx, targets
+
 CROP_CELLS = 48
 JITTER_CELLS = 8
-
-
-def targets(depth_mm: np.ndarray, pitch_mm: float, gradient_clip: float = 1.0) -> np.ndarray:
-    """(N, 3, H, W) float32: depth gradients along image columns and rows (mm per mm, clipped
-    to +-``gradient_clip``: the walls of flat punches and prisms are near vertical and would
-    dominate the loss) and depth in DEPTH_UNIT_MM, of depth maps (N, H, W) mm (rows along -y)."""
-    from .network import DEPTH_UNIT_MM
-
-    g_row, g_col = np.gradient(depth_mm, pitch_mm, axis=(1, 2))
-    g = np.clip(np.stack([g_col, g_row], 1), -gradient_clip, gradient_clip)
-    return np.concatenate([g, (depth_mm / DEPTH_UNIT_MM)[:, None]], 1).astype(np.float32)
 
 
 def contact_crops(features: np.ndarray, target: np.ndarray, rng: np.random.Generator,
@@ -57,12 +48,12 @@ def contact_crops(features: np.ndarray, target: np.ndarray, rng: np.random.Gener
 
 def train_network(x: np.ndarray, y: np.ndarray, width: int, epochs: int, seed: int,
                   batch: int = 32, lr: float = 2e-3, gradient_weight: float = 1.0, log=print):
-    """Train a :class:`.network.ReadoutNet` on crops ``x`` (N, 11, h, w), ``y`` (N, 3, h, w);
+    """Train a :class:`tactile_deploy.learning.readout_network.ReadoutNet` on crops ``x`` (N, 11, h, w), ``y`` (N, 3, h, w);
     loss: mean squared error, the gradient channels weighted by ``gradient_weight`` against
     the depth's 1; returns (network, per-epoch mean losses)."""
     import torch
 
-    from .network import ReadoutNet
+    from tactile_deploy.learning.readout_network import ReadoutNet
 
     torch.manual_seed(seed)
     net = ReadoutNet(width)
@@ -87,33 +78,6 @@ def train_network(x: np.ndarray, y: np.ndarray, width: int, epochs: int, seed: i
         losses.append(total / steps_per_epoch)
         log(f"epoch {epoch + 1}/{epochs}: loss {losses[-1]:.3g} ({time.perf_counter() - t0:.0f} s)")
     return net.eval(), losses
-
-
-def export_onnx(net, out: Path, metadata: dict) -> None:
-    """Write ``net`` as the deployed graph (:class:`.network.ExportedReadout`) to ``out``
-    atomically, with ``metadata`` as ONNX metadata properties."""
-    import onnx
-    import torch
-
-    from tactile_deploy.atomic import atomic_path
-
-    from .network import ExportedReadout
-
-    graph = ExportedReadout(net).eval()
-    example = torch.zeros(1, 11, 64, 90)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out) as tmp:
-        torch.onnx.export(graph, example, str(tmp), input_names=["features"],
-                          output_names=["depth_mm", "gradients"], opset_version=17,
-                          dynamic_axes={"features": {0: "batch", 2: "rows", 3: "columns"},
-                                        "depth_mm": {0: "batch", 1: "rows", 2: "columns"},
-                                        "gradients": {0: "batch", 2: "rows", 3: "columns"}},
-                          dynamo=False)
-        model = onnx.load(str(tmp))
-        for key, value in metadata.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = key, str(value)
-        onnx.save(model, str(tmp))
 
 
 def _cache_spec(args) -> dict:

@@ -74,8 +74,11 @@ class FrameSource:
     the source in messages ("camera /dev/video2", "clip demo.mp4")."""
 
     name: str = "frame source"
-    #: True for a source that ends (a file); False for a live device.
+    #: True for a source that ends (a file); False for a live device or a looped recording.
     finite: bool = True
+    #: True for a device that captures whether or not it is read (a camera): the loop must not
+    #: wait for slow outputs; False for recordings, which lose nothing by waiting.
+    live: bool = False
 
     def __init__(self) -> None:
         self.stats = SourceStats()
@@ -106,6 +109,12 @@ class FrameSource:
     @property
     def is_connected(self) -> bool:
         return self._connected
+
+    @property
+    def frame_count(self) -> int | None:
+        """Frames this source delivers in all (known for a finite recording once connected;
+        None for a camera or a looped recording): progress and ETA."""
+        return None
 
     def __enter__(self) -> FrameSource:
         return self.connect()
@@ -154,6 +163,10 @@ class ArrayPlayback(FrameSource):
 
     def __len__(self) -> int:
         return len(self._frames)
+
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop else len(self._frames)
 
     def _read(self) -> Frame | None:
         n = len(self._frames)

@@ -28,19 +28,30 @@ class DemoSourceConfig(BaseModel):
 
 
 class CameraSourceConfig(BaseModel):
-    """A live camera through OpenCV (V4L2 on Linux), by index or device path."""
+    """A live camera through OpenCV (V4L2 on Linux), by index, device path or serial number."""
 
     model_config = _STRICT
 
     kind: Literal["camera"] = Field("camera", description="Source kind.")
     device: int | str = Field(
-        0, description="Camera index (0, 1, ...) or device path (e.g. /dev/video2).")
+        0, description="Camera index (0, 1, ...), device path (/dev/video2, or a stable link "
+        "/dev/v4l/by-id/...), or serial:SERIAL (the USB serial number; `tactile-deploy "
+        "cameras` lists them).")
     width_px: int | None = Field(None, gt=0, description="Requested frame width, px (None: the "
                                  "camera's default; the plugin's camera mapping must match).")
     height_px: int | None = Field(None, gt=0, description="Requested frame height, px.")
     fps: float | None = Field(None, gt=0, description="Requested frame rate, frames per second.")
     fourcc: str | None = Field(None, pattern=r"^[ -~]{4}$",
                                description="Requested pixel format, e.g. 'MJPG' or 'YUYV'.")
+    exposure: Literal["auto", "lock"] | float | None = Field(
+        None, description="Exposure: 'auto' (the camera's automatic exposure), 'lock' (automatic "
+        "for settle_s, then fixed at the value it chose), a number (manual, in the driver's "
+        "units: V4L2 exposure_time_absolute, 100 us), or None (leave the camera as it is).")
+    white_balance: Literal["auto", "lock"] | float | None = Field(
+        None, description="White balance: 'auto', 'lock' (automatic for settle_s, then fixed), "
+        "a colour temperature in K (manual), or None (leave the camera as it is).")
+    settle_s: float = Field(1.0, ge=0, description="How long automatic exposure and white "
+                            "balance run before 'lock' fixes them, s.")
     reconnect_timeout_s: float = Field(
         10.0, ge=0, description="How long to keep trying to reopen a camera that disappeared "
         "before giving up, s (0: give up at once).")
@@ -103,7 +114,7 @@ SourceConfig = Annotated[
 #: Source kinds and what their command-line text looks like.
 SOURCE_FORMS = {
     "demo": "demo",
-    "camera": "0 | 1 | /dev/video2 | camera:0",
+    "camera": "0 | 1 | /dev/video2 | /dev/v4l/by-id/... | serial:SERIAL | camera:0",
     "video": "clip.mp4 | clip.avi | clip.mkv",
     "images": "path/to/folder/ (png/jpg/jpeg/bmp/tif/tiff files)",
     "npz": "recording.npz",
@@ -138,6 +149,8 @@ def parse_source(text: str, *, loop: bool = False):
     if re.fullmatch(r"\d+", t):
         return CameraSourceConfig(device=int(t))
     if t.startswith("/dev/"):
+        return CameraSourceConfig(device=t)
+    if t.startswith("serial:") and len(t) > len("serial:"):
         return CameraSourceConfig(device=t)
     path = Path(t).expanduser()
     if path.is_dir():

@@ -67,6 +67,8 @@ def make_source(config, plugin=None, from_manifest: bool = False, **kwargs) -> F
     if isinstance(config, CameraSourceConfig):
         from tactile_deploy.runtime.sources.camera import OpenCVCamera
 
+        if plugin is not None:
+            config = camera_config_for_plugin(config, plugin)
         return OpenCVCamera(config, **kwargs)
     if isinstance(config, VideoSourceConfig):
         from tactile_deploy.runtime.sources.video import VideoSource
@@ -93,6 +95,26 @@ def make_source(config, plugin=None, from_manifest: bool = False, **kwargs) -> F
                                    loop=config.loop)
     forms = ", ".join(SOURCE_FORMS)
     raise SourceError(f"unknown frame source config {config!r}; known kinds: {forms}")
+
+
+def camera_config_for_plugin(config: CameraSourceConfig, plugin) -> CameraSourceConfig:
+    """``config`` with what it leaves open taken from the plugin: the frame size of its camera
+    mapping, and frame rate, pixel format, exposure and white balance of its default source when
+    that is a camera (a camera given as ``--source 0`` is asked for what the plugin expects)."""
+    cam = plugin.manifest.camera
+    updates = {}
+    if config.width_px is None:
+        updates["width_px"] = cam.image_width_px
+    if config.height_px is None:
+        updates["height_px"] = cam.image_height_px
+    default = plugin.manifest.default_source
+    if isinstance(default, CameraSourceConfig):
+        for name in ("fps", "fourcc", "exposure", "white_balance"):
+            if getattr(config, name) is None and getattr(default, name) is not None:
+                updates[name] = getattr(default, name)
+        if "settle_s" not in config.model_fields_set and "settle_s" in default.model_fields_set:
+            updates["settle_s"] = default.settle_s
+    return config.model_copy(update=updates) if updates else config
 
 
 def _virtual_sensor_of(plugin) -> str:

@@ -2,7 +2,8 @@
 
 Without a pattern every file with an image suffix (:data:`IMAGE_SUFFIXES`, any case) is read.
 An unreadable image is logged and skipped (counted in ``stats.unreadable``, its name kept once in
-``unreadable_files``); timestamps assume the configured frame rate.
+``unreadable_files``); timestamps assume the configured frame rate, except in a folder written by
+``run --record``: its ``timestamps.csv`` gives the order and each frame's recorded time.
 """
 
 from __future__ import annotations
@@ -39,6 +40,11 @@ class ImageFolderSource(FrameSource):
         self.unreadable_files: list[str] = []
         self._i = 0
         self._t = 0
+        self._times_ns: list[int] | None = None
+
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop or not self._files else len(self._files)
 
     def _open(self) -> None:
         if not self.folder.is_dir():
@@ -48,6 +54,17 @@ class ImageFolderSource(FrameSource):
         else:
             found = self.folder.glob(self.pattern)
         self._files = sorted(p for p in found if p.is_file())
+        self._times_ns = None
+        if self.pattern is None:
+            from tactile_deploy.runtime.record import read_timestamps
+
+            recorded = read_timestamps(self.folder)
+            if recorded:
+                by_name = {p.name: p for p in self._files}
+                kept = [(by_name[n], t) for n, t in recorded if n in by_name]
+                self._files = [p for p, _ in kept]
+                t0 = kept[0][1] if kept else 0
+                self._times_ns = [t - t0 for _, t in kept]
         if not self._files:
             if self.pattern is None:
                 raise SourceError(f"{self.name}: no image files ({', '.join(IMAGE_SUFFIXES)}) in "
@@ -74,7 +91,10 @@ class ImageFolderSource(FrameSource):
                     self.unreadable_files.append(path.name)
                 log.warning("%s: cannot read %s as an image; skipped", self.name, path.name)
                 continue
-            t = int(round(self._t * 1e9 / self.fps))
+            if self._times_ns is not None:
+                t = self._times_ns[self._i - 1]
+            else:
+                t = int(round(self._t * 1e9 / self.fps))
             self._t += 1
             return self._frame(np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)), t,
                                label=path.name)

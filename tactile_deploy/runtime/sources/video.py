@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.atomic import atomic_path
 from tactile_deploy.runtime.sources.base import Frame, FrameSource, SourceError
 
 
@@ -27,6 +28,10 @@ class VideoSource(FrameSource):
         self._n = 0
         self._pos = 0
 
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop or not self._n else self._n
+
     def _open(self) -> None:
         import cv2
 
@@ -38,6 +43,7 @@ class VideoSource(FrameSource):
             raise SourceError(f"{self.name}: OpenCV cannot open it (unknown container or codec); "
                               "convert it to .mp4 (mp4v) or record a .npz clip instead")
         self._fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self._n = max(int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)   # container's count
         self._pos = 0
 
     def _read(self) -> Frame | None:
@@ -70,8 +76,6 @@ class VideoSource(FrameSource):
 def write_video(path: str | os.PathLike, frames, fps: float = 30.0, fourcc: str = "mp4v") -> Path:
     """Write RGB frames (N, H, W, 3) uint8 as a video file (atomic). Returns the path."""
     import cv2
-
-    from tactile_deploy.atomic import atomic_path
 
     frames = np.asarray(frames)
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:

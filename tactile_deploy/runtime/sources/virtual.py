@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
 from tactile_deploy.runtime.sources.base import Frame, FrameSource, SourceError
+from tactile_deploy.sensors import load_sensor
+from tactile_deploy.sensors.catalog import UnknownSensorError
+from tactile_deploy.sensors.virtual import PressEvent, PressScript
 
 #: Indenters of the default script.
 SCRIPT_INDENTERS = ("sphere_r4", "cylinder_side", "cross", "flat_punch", "ellipsoid", "sphere_r6")
@@ -19,7 +23,6 @@ SCRIPT_INDENTERS = ("sphere_r4", "cylinder_side", "cross", "flat_punch", "ellips
 
 def default_script(sensor, n_frames: int, seed: int = 0):
     """A :class:`~tactile_deploy.sensors.virtual.PressScript` filling ``n_frames`` frames."""
-    from tactile_deploy.sensors.virtual import PressEvent, PressScript
 
     fps = sensor.config.fps
     duration = n_frames / fps
@@ -41,7 +44,6 @@ def default_script(sensor, n_frames: int, seed: int = 0):
 
 def _view_box(sensor, margin_mm: float = 3.0):
     """Box (x0, x1, y0, y1) mm the camera sees (pixel centres 5 % inside the image), shrunk."""
-    from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
 
     cam = sensor.optics.camera
     w, h = cam.image_size
@@ -71,12 +73,11 @@ class VirtualSensorSource(FrameSource):
         self._sensor = None
         self._k = 0
 
+    @property
+    def frame_count(self) -> int | None:
+        return None if self._loop else self.n_frames
+
     def _open(self) -> None:
-        try:
-            from tactile_deploy.sensors import load_sensor
-            from tactile_deploy.sensors.catalog import UnknownSensorError
-        except ImportError as e:
-            raise SourceError(f"{self.name}: the virtual sensors are not installed ({e})") from None
         try:
             self._sensor = load_sensor(self.sensor_name)
         except UnknownSensorError as e:

@@ -39,6 +39,8 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
+from tactile_deploy.fem.simulator import ContactResult, surface_contact_forces
+from tactile_deploy.sensors.effects._neo_hookean import NeoHookeanPad
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 #: Convergence tolerance of the fixed-point iterations, mm (largest nodal change).
@@ -59,7 +61,6 @@ class HyperelasticConvergenceError(RuntimeError):
 
 def _pad_model(simulator):
     """Neo-Hookean force model of the simulator's mesh at E = 1 MPa (cached on the simulator)."""
-    from tactile_deploy.sensors.effects._neo_hookean import NeoHookeanPad
 
     cached = getattr(simulator, "_neo_hookean_pad", None)
     if cached is None:
@@ -79,7 +80,6 @@ def solve_neo_hookean(simulator, delta_mm: np.ndarray, strength: float = 1.0,
     (history ``anderson``; mixing 0.5, then 0.2 if that breaks down) makes the iterations
     converge where the plain fixed point diverges (strains of 50 %).
     """
-    from tactile_deploy.fem.simulator import ContactResult, surface_contact_forces
 
     if simulator.block != 1:
         raise ValueError("the hyperelastic effect solves frictionless contact only; build the "

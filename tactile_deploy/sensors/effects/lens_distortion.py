@@ -22,6 +22,7 @@ from typing import ClassVar
 
 from pydantic import Field
 
+from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 
@@ -43,7 +44,6 @@ class LensDistortion(Effect):
         p = self.params
         if p.k1 == 0.0 and p.k2 == 0.0:
             return model
-        from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 
         cam = model.camera
         d = cam.dist_coeffs.copy()

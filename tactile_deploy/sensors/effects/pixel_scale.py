@@ -23,6 +23,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
+from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 
@@ -43,7 +44,6 @@ class PixelScale(Effect):
         a = self.params.anisotropy
         if a == 0.0:
             return model
-        from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 
         cam = model.camera
         cy = cam.intrinsics.cy_px

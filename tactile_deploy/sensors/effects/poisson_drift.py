@@ -29,6 +29,8 @@ from typing import ClassVar
 
 from pydantic import Field
 
+from tactile_deploy.fem.material import NU_MAX_VALIDATED
+from tactile_deploy.fem.simulator import ContactSimulator
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 #: Simulators at drifted ratios kept per nominal simulator (each holds its surface operators).
@@ -42,8 +44,6 @@ class PoissonDriftParams(EffectParams):
 
 def drifted_simulator(simulator, delta_nu: float):
     """The simulator of ``simulator``'s pad at ``nu + delta_nu`` (built once, cached on it)."""
-    from tactile_deploy.fem.material import NU_MAX_VALIDATED
-    from tactile_deploy.fem.simulator import ContactSimulator
 
     nu = simulator.material.nu + delta_nu
     if not 0.0 <= nu <= NU_MAX_VALIDATED:

@@ -1,6 +1,6 @@
 """The virtual sensor's own optics as shading knowledge, on virtual-sensor presses.
 
-    python bench/shading_optics_prior.py [--cache DIR] [--weights 1 4 16 100] [--no-sfs]
+    python docs/experiments/shading_optics_prior.py [--cache DIR] [--weights 1 4 16 100] [--no-sfs]
 
 Two oracles that know the exact optics of the virtual GelSlim ``gelslim2`` (LED positions and
 colours, specular lobes, fall-off, vignetting, camera), which no calibration of a real sensor
@@ -23,7 +23,7 @@ knows; each measures how far an optics model could take the shading read-out at 
 
 Presses and errors as in ``bench/bench_shading.py --only virtual`` (the wizard's 24 presses;
 bench set seed 2024, 8 + 8; second set seed 77, 24 + 8; RMSE within 1.5 contact radii, um); the
-presses are cached in ``--cache`` (shared with ``bench/shading_sample_read.py``). The first
+presses are cached in ``--cache`` (shared with ``shading_sample_read.py`` beside it). The first
 oracle swaps the table fit's prior for the rendered one while the script runs (the shading fit
 has no such option: this is a measurement, not a calibration path).
 """
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 
 #: Depth gradients rendered per table node: |g| <= GRADIENT_MAX on a square lattice of GRADIENT_STEP.
 GRADIENT_MAX = 0.75
@@ -241,7 +241,7 @@ def main(argv=None) -> None:
     ap.add_argument("--no-sfs", action="store_true")
     args = ap.parse_args(argv)
 
-    from bench.shading_sample_read import wizard_data
+    from shading_sample_read import wizard_data
     from calibration.shading.fit import fit_shading
     from calibration.shading.presses import PressSet
     from calibration.shading.virtual_check import near_contact_errors

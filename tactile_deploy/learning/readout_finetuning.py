@@ -1,7 +1,7 @@
 """Fine-tune a design's learned read-out on one unit's presses of known depth.
 
-The read-out of a design (:mod:`.train`) is trained on virtual units within assembly tolerances;
-a built unit differs from all of them. The calibration wizard knows the depth of its own rig
+The read-out of a design (``python -m training.shading_net``) is trained on virtual units within
+assembly tolerances; a built unit differs from all of them. The calibration wizard knows the depth of its own rig
 presses (the ball's cap at the rig's intrusion plus its zero offset, the pad's FEM response
 around it), so it can continue the design's network on them: the same network, loss and
 targets as in training (depth and its gradients), full imaging-grid frames, Adam at a small
@@ -9,8 +9,8 @@ learning rate for a few hundred steps, then exported in the same format with the
 contract and where it came from in the metadata.
 
 Data flow: :func:`network_from_onnx` (the base's weights) -> :func:`finetune_network` ->
-:func:`.train.export_onnx`. The calibration side (targets, features, the plugin file) is
-:mod:`calibration.shading.readout_finetune`.
+:func:`~tactile_deploy.learning.readout_network.export_onnx`. The calibration side (targets,
+features, the plugin file) is ``calibration.shading.readout_finetune``.
 """
 
 from __future__ import annotations
@@ -19,17 +19,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+
+from tactile_deploy.learning.readout_network import ReadoutNet
 
 
 def network_from_onnx(path: str | Path):
-    """The :class:`.network.ReadoutNet` of an exported read-out (``.onnx`` written by
-    :func:`.train.export_onnx`), weights loaded from its initializers."""
-    import onnx
-    import torch
-    from onnx import numpy_helper
-
-    from .network import ReadoutNet
-
+    """The :class:`tactile_deploy.learning.readout_network.ReadoutNet` of an exported read-out (``.onnx`` written by
+    :func:`tactile_deploy.learning.readout_network.export_onnx`), weights loaded from its initializers."""
     model = onnx.load(str(path))
     state = {i.name.removeprefix("net."): torch.from_numpy(numpy_helper.to_array(i).copy())
              for i in model.graph.initializer if i.name.startswith("net.")}
@@ -49,8 +48,6 @@ def finetune_network(net, features: np.ndarray, targets: np.ndarray, steps: int,
     """Continue ``net`` on frames ``features`` (N, 11, H, W) float32 with ``targets`` (N, 3, H,
     W) float32 (:func:`.train.targets`): Adam, ``steps`` steps of ``batch`` frames drawn at
     random, mean squared error over all cells; returns (net in eval mode, per-step losses)."""
-    import torch
-
     if len(features) != len(targets) or len(features) == 0:
         raise ValueError(f"need as many targets as frames and at least one frame, got "
                          f"{len(features)} frames and {len(targets)} targets")

@@ -9,10 +9,14 @@ columns and rows (mm per mm) and depth in units of ``DEPTH_UNIT_MM``.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tactile_deploy.atomic import atomic_path
 from tactile_deploy.imaging.learned_readout import N_FEATURES
 
 #: Depth is learned in these units (mm) so that its loss weighs like the gradients'.
@@ -64,3 +68,34 @@ class ExportedReadout(nn.Module):
     def forward(self, features: torch.Tensor):
         out = self.net(features)
         return out[:, 2] * DEPTH_UNIT_MM, out[:, :2]
+
+
+def targets(depth_mm: np.ndarray, pitch_mm: float, gradient_clip: float = 1.0) -> np.ndarray:
+    """(N, 3, H, W) float32: depth gradients along image columns and rows (mm per mm, clipped
+    to +-``gradient_clip``: the walls of flat punches and prisms are near vertical and would
+    dominate the loss) and depth in DEPTH_UNIT_MM, of depth maps (N, H, W) mm (rows along -y)."""
+    g_row, g_col = np.gradient(depth_mm, pitch_mm, axis=(1, 2))
+    g = np.clip(np.stack([g_col, g_row], 1), -gradient_clip, gradient_clip)
+    return np.concatenate([g, (depth_mm / DEPTH_UNIT_MM)[:, None]], 1).astype(np.float32)
+
+
+def export_onnx(net, out: Path, metadata: dict) -> None:
+    """Write ``net`` as the deployed graph (:class:`ExportedReadout`) to ``out``
+    atomically, with ``metadata`` as ONNX metadata properties."""
+    import onnx
+
+    graph = ExportedReadout(net).eval()
+    example = torch.zeros(1, 11, 64, 90)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        torch.onnx.export(graph, example, str(tmp), input_names=["features"],
+                          output_names=["depth_mm", "gradients"], opset_version=17,
+                          dynamic_axes={"features": {0: "batch", 2: "rows", 3: "columns"},
+                                        "depth_mm": {0: "batch", 1: "rows", 2: "columns"},
+                                        "gradients": {0: "batch", 2: "rows", 3: "columns"}},
+                          dynamo=False)
+        model = onnx.load(str(tmp))
+        for key, value in metadata.items():
+            entry = model.metadata_props.add()
+            entry.key, entry.value = key, str(value)
+        onnx.save(model, str(tmp))

@@ -1,6 +1,6 @@
 """Shading read per camera sample instead of per imaging-grid cell, on virtual-sensor presses.
 
-    python bench/shading_sample_read.py [--cache DIR] [--factors 2 3 4]
+    python docs/experiments/shading_sample_read.py [--cache DIR] [--factors 2 3 4]
 
 The runtime rectifies a frame to ``s x s`` samples per imaging-grid cell (0.273 mm on the
 GelSlim grid), averages their colours per cell and reads the shading table per cell. Colour is
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 
 
 def wizard_data(cache: Path) -> dict:
@@ -43,10 +43,8 @@ def wizard_data(cache: Path) -> dict:
     from bench.bench_shading import VIRTUAL_SENSOR, VIRTUAL_WIZARD, run_virtual_wizard
     from calibration.shading.virtual_check import virtual_ball_presses
     from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.steps import (
-        press_profiles,
-        shading_fit_config,
-    )
+    from calibration.wizard.config import shading_fit_config
+    from calibration.wizard.press_data import press_profiles
     from tactile_deploy.sensors import load_sensor
 
     config = wizard_config_from_dict(dict(VIRTUAL_WIZARD), "bench_shading.VIRTUAL_WIZARD")

@@ -11,7 +11,7 @@ Layout inside the plugin folder::
 
 ``history.json`` names the active version (with its model's sha256 and the sha256 of the family
 model it was adapted from); ``tactile-deploy run`` uses it (:meth:`SensorPlugin.model_path
-<tactile_deploy.runtime.plugins.SensorPlugin.model_path>`), ``active: null`` = the plugin's own
+<tactile_deploy.runtime.plugins.loading.SensorPlugin.model_path>`), ``active: null`` = the plugin's own
 model. ``plugin.json`` and every other file the plugin shipped with are never written: a shipped
 plugin stays as shipped, and ``adapted/`` is the only thing added. A version is written into a
 hidden temporary folder and renamed into place, then ``history.json`` is replaced atomically: an
@@ -32,6 +32,7 @@ from typing import Callable
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_json
+from tactile_deploy.checksums import file_sha256
 from tactile_deploy.jsonfile import read_json
 
 log = logging.getLogger(__name__)
@@ -141,8 +142,6 @@ def active_version(folder: str | Path) -> VersionRecord | None:
 def add_version(plugin, staging: Path, record: dict) -> VersionRecord:
     """Move the finished ``staging`` folder (holding ``model.onnx``) into ``adapted/v<n>``, record
     it and make it active. ``record``: the VersionRecord fields but ``version`` and ``model``."""
-    from tactile_deploy.runtime.plugins import file_sha256
-
     root = Path(plugin.folder) / ADAPTED_DIR
     root.mkdir(exist_ok=True)
     history = load_history(plugin)
@@ -184,8 +183,6 @@ def staging_folder(plugin) -> Path:
 
 def _usable(plugin, rec: VersionRecord) -> str | None:
     """Why version ``rec`` cannot be made active (its model file is missing or changed), or None."""
-    from tactile_deploy.runtime.plugins import file_sha256
-
     path = Path(plugin.folder) / rec.model
     if not path.is_file():
         return f"lost its model file {rec.model}"

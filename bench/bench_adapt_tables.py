@@ -1,6 +1,6 @@
 """The paper's Table 2 on our domains, in one command.
 
-    python -m training.adaptation.tables --aug out/predictor/shipped_aug [--clean exported/gelslim_mesh.pt] \
+    tactile-deploy bench adapt-tables -- --aug out/predictor/shipped_aug [--clean exported/gelslim_mesh.pt] \
         [--steps 200] [--lr 1e-4] [--n-adapt 200] [--n-eval 100] [--transfer clean|aug] [--write docs/adaptation.md]
 
 Two models: one trained on clean simulated depth maps (default: the shipped bundle with its ONNX
@@ -32,14 +32,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from training.adaptation.domains import Domain, load_or_make, rmse_mm
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from bench.report import write_section  # noqa: E402
+from calibration.shading.real_gelsight import real_gelsight_plugin  # noqa: E402
+from training.adaptation.domains import (  # noqa: E402
+    REAL_PLUGIN_FOLDER,
+    Domain,
+    load_or_make,
+    rmse_mm,
+)
+
 WORK = ROOT / "out" / "adapt"
 
 
@@ -171,6 +182,8 @@ def main(argv=None) -> int:
     domains_dir = args.work / "domains"
     dom = {name: load_or_make(name, n, args.seed, domains_dir) for name in ("gelslim1", "gelslim2", "gelslim1-novel")}
     split = {k: d.split(args.n_adapt) for k, d in dom.items()}
+    if not (domains_dir / REAL_PLUGIN_FOLDER / "plugin.json").is_file():
+        real_gelsight_plugin(domains_dir / REAL_PLUGIN_FOLDER)
     balls = load_or_make("real-balls", 42, 0, domains_dir)
     split["real-balls"] = balls.split(30)
     sim = load_or_make("sim", args.n_eval, 1000 + args.seed, domains_dir)
@@ -224,11 +237,6 @@ def main(argv=None) -> int:
     md = tables_markdown(results)
     print(md)
     if args.write is not None:
-        import sys
-
-        sys.path.insert(0, str(ROOT))
-        from bench.report import write_section
-
         write_section("adaptation-tables", md, args.write)
     return 0
 

@@ -178,9 +178,9 @@ def fem_command(
     several values."""
     from calibration.fem_fit.fit import fit_fem_parameters
     from calibration.fem_fit.operator_bank import OperatorBank
-    from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.atomic import write_json
     from tactile_deploy.camera.depth import DepthCamera
+    from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.pad.asset import load_pad
 
     if (contacts is None) == (work is None):
@@ -201,8 +201,9 @@ def fem_command(
             matched = read_contacts(contacts)
         else:
             from calibration.wizard.config import wizard_config_from_dict
+            from calibration.wizard.context import StepError
+            from calibration.wizard.press_data import contacts_from_work
             from calibration.wizard.state import WorkFolder
-            from calibration.wizard.steps import StepError, contacts_from_work
 
             wf = WorkFolder(work)
             if not wf.exists():
