@@ -327,14 +327,22 @@ def feature_points(field_: IntrusionField, fp: np.ndarray, h_fine: float,
     ys = np.arange(lo[1] - pitch_mm, hi[1] + 2 * pitch_mm, pitch_mm)
     X, Y = np.meshgrid(xs, ys)
     D = field_(np.stack([X.ravel(), Y.ravel()], 1)).reshape(X.shape)
-    D = np.where(np.isfinite(D), D, -1e3)
+    covered = np.isfinite(D)
+    D = np.where(covered, D, -1e3)
     c = D[1:-1, 1:-1]
+    # Only features inside the footprint (a tip, an edge pointing into the gel); its outline (a
+    # punch's rim, where the indenter's wall rises vertically) is left to the sensing nodes:
+    # constraining a triangle across it would drag the gel below the indenter's face.
+    inner = np.ones_like(c, dtype=bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            inner &= covered[1 + dy: covered.shape[0] - 1 + dy, 1 + dx: covered.shape[1] - 1 + dx]
     kink = np.zeros_like(c, dtype=bool)
     diag = pitch_mm * math.sqrt(2.0)
     for a, b, spacing in ((D[1:-1, :-2], D[1:-1, 2:], pitch_mm), (D[:-2, 1:-1], D[2:, 1:-1], pitch_mm),
                           (D[:-2, :-2], D[2:, 2:], diag), (D[:-2, 2:], D[2:, :-2], diag)):
         kink |= (2 * c - a - b) > 0.3 * spacing
-    kink &= c > 0
+    kink &= (c > 0) & inner
     pts = np.stack([X[1:-1, 1:-1][kink], Y[1:-1, 1:-1][kink]], 1)
     depth = c[kink]
     pts = pts[geometry.contains_xy(pts[:, 0], pts[:, 1])]
