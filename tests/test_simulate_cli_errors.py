@@ -154,7 +154,7 @@ def test_outputs_of_the_wrong_kind_are_refused_before_any_work(tmp_path):
 
 def test_single_contact_npz_describes_itself(tmp_path, pad_sim):
     out = tmp_path / "one.npz"
-    result = run("simulate", "--indenter", "sphere_r2", "--theta", 10, "--depth", 0.3, "--model",
+    result = run("simulate", "--indenter", "flat_punch", "--theta", 10, "--depth", 0.5, "--model",
                  "linear", "--out", out)
     assert result.exit_code == 0, result.output
     with np.load(out) as d:
