@@ -48,9 +48,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_map
-from tactile_deploy.fem.hyperelastic import InvertedElementError, gel_model
+from tactile_deploy.fem.hyperelastic import gel_model
 from tactile_deploy.fem.material import Material
-from tactile_deploy.fem.sparse_solver import SparseCholesky
+from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order
 from tactile_deploy.fem.truth_mesh import build_truth_mesh
 from tactile_deploy.pad.geometry import PadGeometry
 from tactile_deploy.pad.mesh import PadMesh
@@ -71,18 +71,14 @@ class TruthSolveError(RuntimeError):
 
 @dataclass(frozen=True)
 class SolveSettings:
-    """Tolerances and limits of the augmented-Lagrangian Newton iterations."""
+    """Tolerances and limits of the semismooth Newton iterations."""
 
     penetration_tol_mm: float = 1e-5  # largest penetration at convergence
-    force_tol: float = 1e-6  # largest change of a nodal contact force, of the total force
-    max_iterations: int = 60  # multiplier updates
-    max_newton: int = 8  # Newton steps per multiplier update
-    step_tol: float = 1e-9  # Newton converged when the largest step is below this x depth
-    rho_factor: float = 3000.0  # multiplier-update stiffness relative to mu * area / edge
+    force_tol: float = 1e-6  # largest change of a slip force, relative to the total force
+    max_iterations: int = 60  # Newton steps per load step
+    step_tol: float = 1e-9  # converged when the largest step is below this x depth
+    floor_tol: float = 1e-6  # ... or below this x depth and no longer shrinking (round-off floor)
     step_strain: float = 0.1  # load-step depth as a fraction of the pad thickness (large strain)
-    pcg_rtol: float = 1e-12  # relative residual of the preconditioned CG solves
-    pcg_max: int = 150  # CG iterations before the preconditioner is factored afresh
-    precond_bulk: float = 0.15  # bulk term of the preconditioner, fraction of the bulk modulus
 
 
 @dataclass
@@ -362,7 +358,7 @@ def feature_points(field_: IntrusionField, fp: np.ndarray, h_fine: float,
 
 
 class _Solve:
-    """One augmented-Lagrangian Newton solve (state of the iterations)."""
+    """One semismooth (primal-dual active-set) Newton solve: the state of its iterations."""
 
     def __init__(self, solver: TruthSolver, mesh: PadMesh, field_: IntrusionField,
                  h_fine: float, fp: np.ndarray, features):
@@ -398,23 +394,48 @@ class _Solve:
         else:
             dt = np.full(len(tri), np.inf)
         self.cand_tris = tri[dt < reach + 2 * h_fine]
-        areas = mesh.sensing_nodal_areas_mm2()
-        self.areas = areas
-        lam_, mu_ = mat.lame_mpa
-        top = h_fine  # the edge length under the contact
-        self.rho_node = solver.settings.rho_factor * mu_ * areas / top  # N/mm per node
-        self.rho_point = solver.settings.rho_factor * mu_ * h_fine**2 / top
+        self.areas = mesh.sensing_nodal_areas_mm2()
+        _, shear = mat.lame_mpa
+        # Complementarity constants (N/mm): the stiffness of a node's patch of gel.
+        self.c_node = shear * self.areas[self.cand_nodes] / h_fine
+        self.c_point = shear * h_fine
         self.n_plane = n_plane
-        self.lam_node = np.zeros(n_plane)
-        self.lam_point = np.zeros(len(self.ind_xy))
-        self.t_T = np.zeros((n_plane, 3))  # tangential traction multipliers (friction)
         self.friction = mat.friction
         self.mu_f = mat.mu
         self.lift = 0.0  # the indenter raised by this much (mm) during load steps
-        self._factor = None
-        self._M0 = None
         self.factorizations = 0
-        self.pcg_iterations = 0
+        self.newton_steps = 0
+        self._cand_index = -np.ones(mesh.n_nodes, np.int64)
+        self._cand_index[self.cand_nodes] = np.arange(len(self.cand_nodes))
+        self._init_dof_layout()
+
+    # ------------------------------------------------------------------------ dof layout
+    def _init_dof_layout(self):
+        """Free coordinates grouped by node, and a fill-reducing order of the nodes."""
+        n = self.mesh.n_nodes
+        noc = self.dofs.node_of_col
+        self.k_node = np.bincount(noc, minlength=n)
+        order = np.argsort(noc, kind="stable")
+        start = np.concatenate([[0], np.cumsum(self.k_node)[:-1]])
+        cols = -np.ones((n, 3), np.int64)
+        cols[noc[order], np.arange(len(noc)) - start[noc[order]]] = order
+        self.cols = cols
+        # Full-space direction of each free coordinate, per node: (n, 3, 3), column a = the
+        # direction of the node's a-th coordinate (zero where absent).
+        D = np.zeros((n, 3, 3))
+        valid = cols >= 0
+        D[np.nonzero(valid)[0], :, np.nonzero(valid)[1]] = self.dofs.direction_of_col[cols[valid]]
+        self.D = D
+        # The stiffness couples nodes that share a nodal patch (two rings of tets).
+        tets = self.mesh.tets
+        inc = sp.csr_matrix((np.ones(tets.size), (np.repeat(np.arange(len(tets)), 4), tets.ravel())),
+                            shape=(len(tets), n))
+        ring = (inc.T @ inc).tocsr()
+        ring.data[:] = 1.0
+        perm = nested_dissection_order(ring @ ring)
+        self.node_order = np.arange(n) if perm is None else perm
+        self.ordered = perm is not None
+        self.T_full = self.dofs.T.tocsr()
 
     # ------------------------------------------------------------------------ constraints
     def constraints(self, u: np.ndarray) -> _Constraints:
@@ -461,25 +482,6 @@ class _Solve:
         )
 
     # -------------------------------------------------------------------------- pieces
-    def multipliers(self):
-        return np.concatenate([self.lam_node[self.cand_nodes], self.lam_point])
-
-    def rho(self):
-        return np.concatenate([self.rho_node[self.cand_nodes],
-                               np.full(len(self.ind_xy), self.rho_point)])
-
-    def set_multipliers(self, lam):
-        k = len(self.cand_nodes)
-        self.lam_node[:] = 0.0
-        self.lam_node[self.cand_nodes] = lam[:k]
-        self.lam_point = lam[k:]
-
-    def normal_forces(self, c: _Constraints, lam: np.ndarray) -> np.ndarray:
-        """Normal contact force carried by each sensing node, (n_plane,) N."""
-        fn = np.zeros(self.n_plane)
-        np.add.at(fn, c.nodes.ravel(), (lam[:, None] * c.share).ravel())
-        return fn
-
     def indenter_normals(self, u: np.ndarray) -> np.ndarray:
         """Unit normal of the indenter (pointing into the gel, -z side) at each sensing node."""
         X = self.mesh.vertices[: self.n_plane]
@@ -494,152 +496,77 @@ class _Solve:
         return n
 
     def friction_bound(self, fn: np.ndarray) -> np.ndarray:
+        """Largest tangential force (N) of each candidate node for its normal force fn (N)."""
         if self.friction == "frictionless":
             return np.zeros_like(fn)
         if self.friction == "stick":
             return np.where(fn > 0, np.inf, 0.0)
         return self.mu_f * fn
 
-    # -------------------------------------------------------------------------- merit
-    def merit(self, u, lam, rho, bound, normals):
-        """Augmented energy for fixed multipliers; +inf where an element inverts."""
-        e = self.gel.energy(u)
-        if not np.isfinite(e):
-            return np.inf
-        c = self.constraints(u)
-        a = np.maximum(0.0, lam - rho * c.gap)
-        e += float(np.sum((a**2 - lam**2) / (2 * rho)))
-        if self.friction != "frictionless":
-            e += self._friction_energy(u, bound, normals)
-        return e
+    def _reduction(self, rows: np.ndarray, rhs: np.ndarray, nrows: np.ndarray):
+        """Eliminate the node constraints ``rows`` (k, 3, 3) . du_node = ``rhs`` (k, 3) of the
+        candidate nodes (the first ``nrows`` (k,) rows of each are used).
 
-    def _tangential(self, u, normals):
-        P = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]
-        uT = np.einsum("nij,nj->ni", P, u[: self.n_plane])
-        return P, uT
+        Returns (E (3n, m) CSR: du = E y + p for the m reduced coordinates y, ordered by the
+        fill-reducing node order; p (3n,) the particular increment)."""
+        n = self.mesh.n_nodes
+        nodes = self.cand_nodes
+        con = nrows > 0
+        k = self.k_node
+        reduced = k.copy()
+        p_q = np.zeros(self.dofs.n_free)
+        blocks = {}
+        cn = nodes[con]
+        if len(cn):
+            A = np.einsum("kij,kja->kia", rows[con], self.D[cn])  # (c, 3 rows, 3 coords)
+            mask = (np.arange(3)[None, :] < nrows[con][:, None]).astype(float)
+            A = A * mask[:, :, None]
+            # A node's absent coordinates (held by its supports) are pinned by extra rows, so
+            # that the null space spans its free coordinates only.
+            have = np.arange(3)[None, :] < k[cn][:, None]
+            pins = np.eye(3)[None] * (~have)[:, :, None]
+            A = np.concatenate([A, pins], axis=1)  # (c, 6, 3)
+            U, S, Vt = np.linalg.svd(A, full_matrices=False)
+            tol = 1e-10 * np.maximum(S[:, :1], 1e-300)
+            r = (S > tol).sum(axis=1)
+            Sinv = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0), 0.0)
+            b = np.concatenate([rhs[con] * mask, np.zeros((len(cn), 3))], axis=1)
+            pl = np.einsum("kji,kj,klj,kl->ki", Vt, Sinv, U, b, optimize=True)
+            pl = np.where(have, pl, 0.0)
+            p_q[self.cols[cn][have]] = pl[have]
+            reduced[cn] = 3 - r
+            blocks = (cn, Vt, r)
+        # Reduced coordinates: nodes in the fill-reducing order, each node's consecutively.
+        order = self.node_order
+        start = np.zeros(n, np.int64)
+        start[order] = np.concatenate([[0], np.cumsum(reduced[order])[:-1]])
+        m = int(reduced.sum())
+        ri, ci, vi = [], [], []
+        free_nodes = np.ones(n, bool)
+        if len(cn):
+            free_nodes[cn] = False
+        fn_ = np.flatnonzero(free_nodes)
+        for a in range(3):
+            sel = fn_[k[fn_] > a]
+            ri.append(self.cols[sel, a])
+            ci.append(start[sel] + a)
+            vi.append(np.ones(len(sel)))
+        if len(cn):
+            cn, Vt, r = blocks
+            # null-space directions: rows r..2 of Vt (in the node's coordinates)
+            for j in range(3):
+                use = r <= j
+                for a in range(3):
+                    sel = use & (k[cn] > a)
+                    ri.append(self.cols[cn[sel], a])
+                    ci.append(start[cn[sel]] + j - r[sel])
+                    vi.append(Vt[sel, j, a])
+        Zq = sp.csr_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))),
+                           shape=(self.dofs.n_free, m))
+        E = (self.T_full @ Zq).tocsr()
+        return E, self.T_full @ p_q
 
-    def _friction_energy(self, u, bound, normals):
-        _, uT = self._tangential(u, normals)
-        rho = self.rho_node[:, None]
-        tau = self.t_T - rho * uT
-        nt = np.linalg.norm(tau, axis=1)
-        b = bound
-        stick = nt <= b
-        e = np.where(stick, nt**2, 2 * np.where(np.isfinite(b), b, 0) * nt - np.where(np.isfinite(b), b, 0) ** 2)
-        e = e - np.sum(self.t_T**2, axis=1)
-        return float(np.sum(e / (2 * self.rho_node)))
-
-    # -------------------------------------------------------------------------- Newton
-    def gradient_and_hessian(self, u, lam, rho, bound, normals):
-        f_int, K_mat = self.gel.forces_and_stiffness(u)
-        K = sp.csr_matrix(K_mat.shape)
-        c = self.constraints(u)
-        a = np.maximum(0.0, lam - rho * c.gap)
-        n3 = 3 * self.mesh.n_nodes
-        dofs = (3 * c.nodes[:, :, None] + np.arange(3)[None, None, :]).reshape(len(c.gap), 9)
-        w = c.weights.reshape(len(c.gap), 9)
-        grad = f_int.ravel().copy()
-        np.add.at(grad, dofs.ravel(), (-a[:, None] * w).ravel())
-        act = a > 0
-        if np.any(act):
-            da, wa = dofs[act], w[act] * np.sqrt(rho[act])[:, None]
-            rows = np.repeat(np.arange(int(act.sum())), 9)
-            G = sp.csr_matrix((wa.ravel(), (rows, da.ravel())), shape=(int(act.sum()), n3))
-            K = K + (G.T @ G)
-        if self.friction != "frictionless":
-            P, uT = self._tangential(u, normals)
-            rho_n = self.rho_node
-            tau = self.t_T - rho_n[:, None] * uT
-            nt = np.linalg.norm(tau, axis=1)
-            stick = nt <= bound
-            scale = np.where(stick, 1.0, np.where(nt > 0, bound / np.maximum(nt, 1e-300), 0.0))
-            scale = np.where(np.isfinite(scale), scale, 1.0)
-            t = tau * scale[:, None]
-            node_dofs = 3 * np.arange(self.n_plane)[:, None] + np.arange(3)
-            grad[node_dofs.ravel()] -= np.einsum("nij,nj->ni", P, t).ravel()
-            that = tau / np.maximum(nt, 1e-300)[:, None]
-            blocks = rho_n[:, None, None] * np.where(
-                stick[:, None, None], P, scale[:, None, None] * (P - that[:, :, None] * that[:, None, :]))
-            rows = np.repeat(node_dofs, 3, axis=1).ravel()
-            cols = np.tile(node_dofs, (1, 3)).ravel()
-            K = K + sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n3, n3))
-        return grad, (K_mat, K.tocsr()), c, a
-
-    def _preconditioner_base(self) -> sp.csr_matrix:
-        """Narrow-stencil stand-in for the material stiffness: linear tets with the bulk term
-        per element at ``precond_bulk`` of the bulk modulus (the locking-free stiffness's wide
-        stencil makes its own factor ~10x dearer; this one is spectrally close)."""
-        if self._M0 is None:
-            from tactile_deploy.fem.elasticity import (
-                _scatter_element_matrices,
-                element_stiffness,
-                shape_gradients,
-            )
-
-            lam, mu = self.s.material.lame_mpa
-            kappa = lam + 2.0 * mu / 3.0
-            g, V = shape_gradients(self.mesh.vertices, self.mesh.tets)
-            ke = element_stiffness(g, V, -2.0 * mu / 3.0 + self.s.settings.precond_bulk * kappa, mu)
-            M = _scatter_element_matrices(ke, self.mesh.tets, self.mesh.n_nodes)
-            T = self.dofs.T
-            self._M0 = (T.T @ M @ T).tocsr()
-        return self._M0
-
-    def _linear_solve(self, Kq: sp.csr_matrix, b: np.ndarray, extra_q: sp.csr_matrix) -> np.ndarray:
-        """Solve ``Kq x = b`` by conjugate gradients, preconditioned by the Cholesky factor of
-        the narrow-stencil stiffness plus this step's contact and friction terms (kept while
-        CG converges within ``pcg_max`` iterations, refactored otherwise)."""
-        import scipy.sparse.linalg as spla
-
-        st = self.s.settings
-        for attempt in range(2):
-            if self._factor is None or attempt == 1:
-                M = self._preconditioner_base() + extra_q
-                self._factor = SparseCholesky(M)
-                self.factorizations += 1
-            P = spla.LinearOperator(Kq.shape, matvec=self._factor.solve, dtype=float)
-            count = [0]
-
-            def cb(_):
-                count[0] += 1
-
-            x, info = spla.cg(Kq, b, rtol=st.pcg_rtol, atol=0.0, maxiter=st.pcg_max, M=P,
-                              callback=cb)
-            self.pcg_iterations += count[0]
-            if info == 0 and np.all(np.isfinite(x)):
-                return x
-        # CG did not converge with a fresh preconditioner: the tangent is indefinite (large
-        # compression); a direct solve of the shifted system still gives a descent step.
-        diag = sp.diags(Kq.diagonal())
-        for shift in (0.0, 1e-3, 1e-2, 1e-1, 1.0):
-            try:
-                return SparseCholesky(Kq + shift * diag if shift else Kq).solve(b)
-            except ValueError:
-                continue
-        raise TruthSolveError("Newton matrix not positive definite even when shifted")
-
-    def _newton_step(self, u, lam, rho, bound, normals):
-        """One Newton step with line search on the augmented energy (multipliers fixed).
-        Returns (new u, step length, relative force residual before the step)."""
-        T = self.dofs.T
-        grad, (K_mat, K_extra), _, _ = self.gradient_and_hessian(u, lam, rho, bound, normals)
-        gq = T.T @ grad
-        extra_q = (T.T @ K_extra @ T).tocsr()
-        Kq = (T.T @ K_mat @ T).tocsr() + extra_q
-        step = self._linear_solve(Kq, -gq, extra_q)
-        du = (T @ step).reshape(-1, 3)
-        m0 = self.merit(u, lam, rho, bound, normals)
-        slope = float(gq @ step)
-        t = 1.0
-        while True:
-            m1 = self.merit(u + t * du, lam, rho, bound, normals)
-            if np.isfinite(m1) and m1 <= m0 + 1e-4 * t * slope + 1e-13 * abs(m0):
-                break
-            t *= 0.5
-            if t < 1e-6:
-                break
-        return u + t * du, t, float(np.abs(gq).max()), float(np.abs(du).max())
-
+    # -------------------------------------------------------------------------- iterations
     def run(self) -> TruthSolution:
         """Load steps (the indenter lowered in equal depth increments, large deformation only),
         each solved to the tolerances."""
@@ -651,81 +578,183 @@ class _Solve:
         if self.geometric:
             n_steps = max(1, math.ceil(depth / (st.step_strain * self.s.geometry.thickness_mm)))
         history = []
+        state = None
         for k in range(1, n_steps + 1):
             self.lift = depth * (1.0 - k / n_steps)
-            u, c, lam, it = self._solve_step(u, depth, history)
-        return self._solution(u, c, lam, it, history)
+            u, state = self._solve_step(u, depth, history, state)
+        return self._solution(u, state, history)
 
-    def _solve_step(self, u, depth, history):
+    def _solve_step(self, u, depth, history, state):
+        """Semismooth Newton for one indenter position: each step solves the tangent system
+        with the active contact constraints (and the stick constraints) holding exactly."""
         st = self.s.settings
-        rho = self.rho()
-        normals = self.indenter_normals(u)
-        fn = self.normal_forces(self.constraints(u), self.multipliers())
-        newton = 0
+        nc = len(self.cand_nodes)
+        c = self.constraints(u)
+        if state is None:
+            state = {"lam_n": np.zeros(nc), "lam_p": np.zeros(len(self.ind_xy)),
+                     "active_n": c.gap[:nc] < 0, "active_p": c.gap[nc:] < 0,
+                     "stick": np.zeros(nc, bool), "f_slip": np.zeros((nc, 3)),
+                     "f_node": np.zeros((nc, 3))}
+        else:
+            state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
+            state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
+        prev_step = np.inf
         for it in range(1, st.max_iterations + 1):
-            lam = self.multipliers()
-            bound = self.friction_bound(fn)
-            for _ in range(st.max_newton):  # minimise the augmented energy for these multipliers
-                u, t, res, du_max = self._newton_step(u, lam, rho, bound, normals)
-                newton += 1
-                if t == 1.0 and du_max <= st.step_tol * depth:
-                    break
+            self.newton_steps += 1
             c = self.constraints(u)
-            lam_new = np.maximum(0.0, lam - rho * c.gap)
-            self.set_multipliers(lam_new)
-            fn_new = self.normal_forces(c, lam_new)
-            if self.friction != "frictionless":
-                normals = self.indenter_normals(u)
-                P, uT = self._tangential(u, normals)
-                tau = self.t_T - self.rho_node[:, None] * uT
-                nt = np.linalg.norm(tau, axis=1)
-                b = self.friction_bound(fn_new)
-                scale = np.where(nt <= b, 1.0, b / np.maximum(nt, 1e-300))
-                self.t_T = tau * scale[:, None]
-            total = max(float(fn_new.sum()), 1e-300)
+            normals = self.indenter_normals(u)[self.cand_nodes]
+            act_n, act_p, stick = state["active_n"], state["active_p"], state["stick"] & state["active_n"]
+            # ---- the node constraints: normal (active), tangential (active and sticking)
+            rows = np.zeros((nc, 3, 3))
+            rhs = np.zeros((nc, 3))
+            rows[:, 0] = c.weights[:nc, 0]
+            rhs[:, 0] = -c.gap[:nc]
+            tang = _tangent_basis(normals)  # (nc, 2, 3)
+            rows[:, 1:] = tang
+            uc = u[self.cand_nodes]
+            rhs[:, 1:] = -np.einsum("kij,kj->ki", tang, uc)
+            nrows = np.where(act_n, np.where(stick, 3, 1), 0)
+            E, p = self._reduction(rows, rhs, nrows)
+            # ---- residual and tangent (slip forces are loads of this step)
+            f_int, K = self.gel.forces_and_stiffness(u)
+            R = f_int.ravel().copy()
+            slip = act_n & ~stick
+            if self.friction != "frictionless" and np.any(slip):
+                nodes = self.cand_nodes[slip]
+                R[(3 * nodes[:, None] + np.arange(3)).ravel()] -= state["f_slip"][slip].ravel()
+            Kr = (E.T @ K @ E).tocsr()
+            rhs_r = -(E.T @ (R + K @ p))
+            # ---- active indenter points: Schur complement on their multipliers
+            ap = np.flatnonzero(act_p)
+            C = None
+            if len(ap):
+                dofs = (3 * c.nodes[nc + ap][:, :, None] + np.arange(3)).reshape(len(ap), 9)
+                C = sp.csr_matrix((c.weights[nc + ap].reshape(len(ap), 9).ravel(),
+                                   (np.repeat(np.arange(len(ap)), 9), dofs.ravel())),
+                                  shape=(len(ap), 3 * self.mesh.n_nodes))
+                Cr = (C @ E).toarray()
+                keep = np.linalg.norm(Cr, axis=1) > 1e-8 * np.linalg.norm(C.toarray(), axis=1)
+                # A point whose three corners are all held by active node constraints cannot
+                # move: where it penetrates, those node constraints are released next step
+                # (the point holds the triangle below the indenter's feature instead).
+                held = ap[~keep]
+                ap, C, Cr = ap[keep], C[keep], Cr[keep]
+            else:
+                held = ap
+            factor = SymmetricFactor(Kr, ordered=self.ordered)
+            self.factorizations += 1
+            y = factor.solve(rhs_r)
+            mu_p = np.zeros(len(ap))
+            if len(ap):
+                Y = factor.solve(Cr.T)
+                S = Cr @ Y
+                b = -c.gap[nc + ap] - C @ p - Cr @ y
+                mu_p = np.linalg.solve(S, b)
+                y = y + Y @ mu_p
+            du = E @ y + p
+            # ---- contact forces from the linearised residual
+            r_lin = R + K @ du
+            if len(ap):
+                r_lin -= C.T @ mu_p
+            f_node = r_lin.reshape(-1, 3)[self.cand_nodes]
+            lam_n = np.where(act_n, np.einsum("ki,ki->k", f_node, normals), 0.0)
+            f_T = f_node - lam_n[:, None] * normals
+            f_T = np.where(stick[:, None], f_T, np.where(slip[:, None], state["f_slip"], 0.0))
+            lam_p = np.zeros(len(self.ind_xy))
+            lam_p[ap] = mu_p
+            # ---- step (halved while elements invert)
+            t = 1.0
+            dU = du.reshape(-1, 3)
+            while self.geometric and not np.isfinite(self.gel.energy(u + t * dU)):
+                t *= 0.5
+                if t < 1e-4:
+                    raise TruthSolveError("every step inverts elements of the truth mesh")
+            u = u + t * dU
+            # ---- new active, stick and slip sets (complementarity functions)
+            c = self.constraints(u)
+            new_n = (lam_n - self.c_node * c.gap[:nc]) > 0
+            new_p = (lam_p - self.c_point * c.gap[nc:]) > 0
+            stuck = held[c.gap[nc + held] < -st.penetration_tol_mm] if len(held) else held
+            if len(stuck):
+                release = self._cand_index[c.nodes[nc + stuck].ravel()]
+                new_n[release[release >= 0]] = False
+                new_p[stuck] = True
+            normals = self.indenter_normals(u)[self.cand_nodes]
+            bound = self.friction_bound(np.maximum(lam_n, 0.0))
+            uT = u[self.cand_nodes] - np.einsum("ki,ki->k", u[self.cand_nodes], normals)[:, None] * normals
+            tau = f_T - self.c_node[:, None] * uT
+            tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
+            nt = np.linalg.norm(tau, axis=1)
+            new_stick = new_n & (nt <= bound) & (bound > 0)
+            f_slip = np.where((new_n & ~new_stick)[:, None],
+                              bound[:, None] * tau / np.maximum(nt, 1e-300)[:, None], 0.0)
+            scale = max(float(np.abs(lam_n).sum() + np.abs(lam_p).sum()), 1e-300)
+            slip_change = float(np.abs(f_slip - state["f_slip"]).max(initial=0.0)) / scale
+            same = (np.array_equal(new_n, act_n) and np.array_equal(new_p, state["active_p"])
+                    and np.array_equal(new_stick, stick))
+            step = float(np.abs(dU).max()) * t
             pen = float(max(0.0, -c.gap.min())) if len(c.gap) else 0.0
-            change = float(np.abs(fn_new - fn).max()) / total
-            fn = fn_new
-            history.append((newton, pen, change))
-            log.debug("step lift %.4f mm, update %d: %d Newton steps, penetration %.3g um, force "
-                      "change %.2g, factorizations %d, PCG %d", self.lift, it, newton, pen * 1e3,
-                      change, self.factorizations, self.pcg_iterations)
-            if pen <= st.penetration_tol_mm and change <= st.force_tol:
-                return u, c, lam_new, it
+            history.append((self.newton_steps, pen, step))
+            log.debug("lift %.4f mm, step %d: |du| %.3g mm, t %.2g, active %d+%d, stick %d, "
+                      "penetration %.3g um, slip change %.2g", self.lift, it, step, t,
+                      int(new_n.sum()), int(new_p.sum()), int(new_stick.sum()), pen * 1e3,
+                      slip_change)
+            state.update(lam_n=lam_n, lam_p=lam_p, active_n=new_n, active_p=new_p,
+                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0))
+            small = step <= st.step_tol * depth or (step <= st.floor_tol * depth
+                                                     and step >= 0.5 * prev_step)
+            prev_step = step
+            if same and t == 1.0 and small and slip_change <= st.force_tol and \
+                    pen <= st.penetration_tol_mm:
+                return u, state
         raise TruthSolveError(
-            f"contact iterations did not converge in {st.max_iterations} multiplier updates "
-            f"({newton} Newton steps, indenter {self.lift:.3g} mm above its final depth): "
-            f"penetration {pen * 1e3:.3g} um, nodal force change {change:.2g} of the total")
+            f"contact iterations did not converge in {st.max_iterations} Newton steps (indenter "
+            f"{self.lift:.3g} mm above its final depth): last step {step:.3g} mm, penetration "
+            f"{pen * 1e3:.3g} um, active sets changing: {not same}")
 
-    def _solution(self, u, c, lam, it, history) -> TruthSolution:
+    def _solution(self, u, state, history) -> TruthSolution:
         n_plane = self.n_plane
-        f = np.zeros(3 * self.mesh.n_nodes)
-        dofs = (3 * c.nodes[:, :, None] + np.arange(3)[None, None, :]).reshape(len(c.gap), 9)
-        np.add.at(f, dofs.ravel(), (lam[:, None] * c.weights.reshape(len(c.gap), 9)).ravel())
-        forces = f.reshape(-1, 3)[:n_plane].copy()
+        nc = len(self.cand_nodes)
+        c = self.constraints(u)
         normals = self.indenter_normals(u)
-        if self.friction != "frictionless":
-            P, _ = self._tangential(u, normals)
-            forces += np.einsum("nij,nj->ni", P, self.t_T)
-        fn = self.normal_forces(c, lam)
-        in_contact = fn > 1e-12 * max(fn.max(), 1e-300)
+        lam_n = np.where(state["active_n"], state["lam_n"], 0.0)
+        forces = np.zeros((n_plane, 3))
+        nodes = self.cand_nodes
+        forces[nodes] = lam_n[:, None] * normals[nodes] + state["f_node"]
+        fn = np.zeros(n_plane)
+        fn[nodes] = lam_n
+        lam_p = state["lam_p"]
+        if len(lam_p):
+            fp = lam_p[:, None, None] * c.weights[nc:]  # (q, 3 corners, 3)
+            np.add.at(forces, c.nodes[nc:].ravel(), fp.reshape(-1, 3))
+            np.add.at(fn, c.nodes[nc:].ravel(), (lam_p[:, None] * c.share[nc:]).ravel())
+        in_contact = fn > 1e-12 * max(fn.max(initial=0.0), 1e-300)
+        sticking = np.zeros(n_plane, bool)
         if self.friction == "stick":
             sticking = in_contact.copy()
-        elif self.friction == "frictionless":
-            sticking = np.zeros(n_plane, bool)
-        else:
-            tn = np.linalg.norm(self.t_T, axis=1)
-            sticking = in_contact & (tn < (1.0 - 1e-6) * self.mu_f * fn)
+        elif self.friction == "coulomb":
+            sticking[nodes] = state["stick"]
+            sticking &= in_contact
         return TruthSolution(
             mesh=self.mesh, displacements_mm=u, contact_forces_n=forces, normal_force_n=fn,
             in_contact=in_contact, sticking=sticking, force_n=float(-forces[:, 2].sum()),
             tangential_force_n=forces[:, :2].sum(0),
             max_penetration_mm=float(max(0.0, -c.gap.min())) if len(c.gap) else 0.0,
-            iterations=it,
+            iterations=self.newton_steps,
             info={"history": history, "n_nodes": self.mesh.n_nodes,
-                  "factorizations": self.factorizations, "pcg_iterations": self.pcg_iterations,
+                  "factorizations": self.factorizations,
+                  "newton_steps": self.newton_steps,
                   "n_constraints": len(c.gap), "h_fine_mm": self.h_fine},
         )
+
+
+def _tangent_basis(normals: np.ndarray) -> np.ndarray:
+    """Two unit vectors (k, 2, 3) spanning the plane normal to each unit normal (k, 3)."""
+    a = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    t1 = a - np.einsum("ki,ki->k", a, normals)[:, None] * normals
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    return np.stack([t1, t2], axis=1)
 
 
 def _dof_map(mesh: PadMesh, supports: Supports):
