@@ -92,7 +92,8 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from training.export import VARIANTS, DeployGraph, export_variant, make_session, run_session, torch_reference
+    from tactile_deploy.onnx_runtime.session import make_session
+    from training.export import VARIANTS, DeployGraph, export_variant, run_session, torch_reference
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", default=str(ROOT / "exported" / "gelslim_mesh.pt"), help="training bundle (model.pt)")
@@ -153,7 +154,7 @@ def main(argv=None) -> int:
         path = export_variant(model, v, tmp / f"{v}.onnx", calib if "-int8" in v else None)
         export_s[v] = time.perf_counter() - t0
         sizes[v] = sum(p.stat().st_size for p in tmp.glob(f"{v}.onnx*")) / 2**20
-        sessions[v] = make_session(path, threads=1)
+        sessions[v] = make_session(path, threads=1, providers="cpu")
         print(f"exported {v} ({export_s[v]:.0f} s, {sizes[v]:.1f} MiB)", file=sys.stderr)
 
     # torch eager baselines: the trained modules (sparse products, no folding), fp32, no grad

@@ -35,7 +35,6 @@ integration by the table's confidence could gain).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -278,6 +277,7 @@ def virtual_accuracy(small: bool = False) -> dict:
 
     import numpy as np
 
+    from calibration.fem_fit.result import read_fem_result
     from calibration.shading.fit import fit_shading
     from calibration.shading.presses import PressSet
     from calibration.shading.readout_gain import readout_depth_gain
@@ -304,7 +304,7 @@ def virtual_accuracy(small: bool = False) -> dict:
     config = wizard_config_from_dict(doc, "bench_shading.VIRTUAL_WIZARD")
     with tempfile.TemporaryDirectory() as tmp:
         d, camera, reference, reference_frames = run_virtual_wizard(config, Path(tmp))
-        material = json.loads((Path(tmp) / "work" / "fem.json").read_text())
+        material = read_fem_result(Path(tmp) / "work" / "fem.json")
     keep = d["keep"]
     pitch = camera.grid.pitch_x_mm
     fit_cfg = shading_fit_config(config.shading)
@@ -358,9 +358,9 @@ def virtual_accuracy(small: bool = False) -> dict:
                                    readout=ro)
         if ro is not None:   # the unit's depth gain, as the wizard calibrates it
             gain, _ = readout_depth_gain(pipeline, d["raw"][keep], d["tip_mm"][keep, 2],
-                                         material.get("depth_offset_mm") or 0.0)
+                                         material.depth_offset_mm or 0.0)
             out["readout_gain" if ro is readout else "finetuned_gain"] = gain
-            out["rig_offset_um"] = 1e3 * (material.get("depth_offset_mm") or 0.0)
+            out["rig_offset_um"] = 1e3 * (material.depth_offset_mm or 0.0)
             pipeline = ImagingPipeline(cam, model, reference, gain * noise.astype(np.float32),
                                        "subtract", readout=ro, readout_gain=gain)
         out["errors"][key] = {

@@ -16,7 +16,6 @@ only from depth maps accurate to about 1 um, not from shading-based ones (docs/c
 from __future__ import annotations
 
 import csv
-import json
 import math
 from pathlib import Path
 from typing import Optional
@@ -178,7 +177,7 @@ def fem_command(
     several values."""
     from calibration.fem_fit.fit import fit_fem_parameters
     from calibration.fem_fit.operator_bank import OperatorBank
-    from tactile_deploy.atomic import write_json
+    from calibration.fem_fit.result import FemResult, write_fem_result
     from tactile_deploy.camera.depth import DepthCamera
     from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.pad.asset import load_pad
@@ -241,11 +240,11 @@ def fem_command(
     nu_fixed = len(grid) == 1
     nu_std = None if nu_fixed or not math.isfinite(res.nu_std) else res.nu_std
     E_std = res.E_std_mpa if n_forces > 1 else None
-    doc = {"nu": res.nu, "nu_std": nu_std, "nu_note": res.nu_note, "E_mpa": res.E_mpa,
-           "E_std_mpa": E_std, "E_note": res.E_note, "friction": res.friction,
-           "friction_note": res.friction_note, "depth_gap_um": 1e3 * res.rmse_mm,
-           "method": res.method, "evaluations": res.evaluations, "n_contacts": len(matched),
-           "depth_offset_mm": res.depth_offset_mm}
+    result = FemResult(nu=res.nu, nu_std=nu_std, nu_note=res.nu_note, E_mpa=res.E_mpa,
+                       E_std_mpa=E_std, E_note=res.E_note, friction=res.friction,
+                       friction_note=res.friction_note, depth_gap_um=1e3 * res.rmse_mm,
+                       method=res.method, evaluations=res.evaluations, n_contacts=len(matched),
+                       depth_offset_mm=res.depth_offset_mm, source="tactile-deploy calibrate fem")
     if nu_fixed:
         typer.echo(f"nu = {res.nu:.4f} (fixed by --nu-grid {nu_grid}, not fitted)")
     else:
@@ -261,5 +260,5 @@ def fem_command(
     typer.echo(f"friction: {res.friction_note}")
     typer.echo(f"depth-map gap at the optimum: {1e3 * res.rmse_mm:.2f} um RMS")
     if out is not None:
-        write_json(out, json.loads(json.dumps(doc, default=float)))
+        write_fem_result(out, result)
         typer.echo(f"wrote {out}")

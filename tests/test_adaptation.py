@@ -33,9 +33,12 @@ def tiny(tmp_path_factory):
     step. Biases of the encoder, the projection and the mesh decoder are zeroed (a random
     network's output is otherwise a constant set by its biases; without them it is proportional
     to the input) and the decoder is scaled to dents of ~0.5 mm."""
+    from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
+    from tactile_deploy.onnx_runtime.metadata import write_metadata
+    from tactile_deploy.pad.asset import load_pad
     from training.adaptation.export import export_step
     from training.config import TrainConfig
-    from training.export import export_variant, write_metadata
+    from training.export import export_variant
     from training.train import BUNDLE_FORMAT, build_model, git_commit
 
     folder = tmp_path_factory.mktemp("tiny")
@@ -68,7 +71,9 @@ def tiny(tmp_path_factory):
     torch.save(bundle, folder / "model.pt")
     onnx_path = folder / "tiny.onnx"
     export_variant(model, "lean-fastood", onnx_path, optimize=False)
-    write_metadata(onnx_path, {"mesh_hash": bundle["mesh_hash"], "variant": "lean-fastood", "ood_threshold": "1.0"})
+    n_nodes = len(load_pad().vertices)
+    write_metadata(onnx_path, mesh_model_metadata("gelslim_v1", bundle["mesh_hash"], n_nodes, 1.0)
+                   | {"variant": "lean-fastood"}, replace=True)
     card = export_step(folder / "model.pt", onnx_path, folder / "tiny_adapt", log=lambda m: None)
     return {"folder": folder, "model": model, "onnx": onnx_path, "step": folder / "tiny_adapt", "card": card}
 
@@ -178,13 +183,13 @@ def tiny_plugin(tiny, tmp_path):
 
 
 def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
+    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
     from tactile_deploy.runtime.plugins.versions import (
         add_version,
         load_history,
         rollback,
         staging_folder,
     )
-    from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 
     plugin = SensorPlugin.load(tiny_plugin)
     manifest = (tiny_plugin / "plugin.json").read_bytes()
@@ -221,8 +226,8 @@ def test_versions_are_atomic_kept_and_rolled_back(tiny, tiny_plugin):
 
 
 def test_a_version_of_another_family_model_is_not_used_and_a_changed_one_is_refused(tiny, tiny_plugin):
-    from tactile_deploy.runtime.plugins.versions import add_version, history_path, staging_folder
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
+    from tactile_deploy.runtime.plugins.versions import add_version, history_path, staging_folder
 
     plugin = SensorPlugin.load(tiny_plugin)
     stage = staging_folder(plugin)

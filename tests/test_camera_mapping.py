@@ -509,14 +509,6 @@ def test_cli_camera_dots_and_make_board(tmp_path, dots_scene):
     assert (tmp_path / "board.png").is_file() and (tmp_path / "board.json").is_file()
 
 
-def test_committed_json_schema_matches_model():
-    from calibration.camera.schema import SCHEMA_PATH, schema_text
-
-    assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text(), (
-        "camera_mapping.schema.json is stale: run `python -m calibration.camera.schema`"
-    )
-
-
 def test_cli_camera_charuco_single_frame_with_figure(tmp_path, charuco_scene):
     from typer.testing import CliRunner
 

@@ -11,6 +11,7 @@ presses (tests/test_runtime_pipeline.py) meet the calibration's shape targets.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -25,14 +26,27 @@ from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = ("gelslim1", "gelslim2")
 # The shipped plugins read frames with the design's learned read-out. The calibration's depth
-# target is 20 um RMS near the contact (mean over presses); single presses and the peak get the
-# spread the manifests' provenance measured on 16 held-out presses (near <= 24.4 um, peak
-# <= 40 um, whole frame <= 4.0 um) with a margin. Measured here: near 13.5 / 15.0 um mean,
-# 16.5 / 16.3 um worst, peak 18 / 27 um, whole frame 3.5 / 4.0 um (gelslim1 / gelslim2).
+# target is 20 um RMS near the contact (mean over presses); single presses, the peak and the
+# whole frame are held to what the plugins' provenance documents for their held-out presses
+# (the largest over the design's units, read from the manifests below). Measured here: near
+# 13.5 / 15.0 um mean, 16.5 / 16.3 um worst, peak 17.9 / 26.9 um, whole frame 3.46 / 4.00 um
+# (gelslim1 / gelslim2).
 NEAR_RMSE_MEAN_UM = 20.0
-NEAR_RMSE_UM = 30.0
-PEAK_UM = 50.0
-WHOLE_RMSE_UM = 8.0
+
+
+def documented_held_out_um() -> dict:
+    """The largest held-out depth errors (um) the shipped manifests' provenance documents."""
+    pattern = (r"whole frame RMSE <= ([0-9.]+) um, within 1.5 contact radii <= ([0-9.]+) um "
+               r"\(mean [0-9.]+\), peak <= ([0-9.]+) um")
+    found = []
+    for name in SHIPPED:
+        text = json.loads((ROOT / "plugins" / name / "plugin.json").read_text())["provenance"][
+            "held_out_depth_error"]
+        m = re.search(pattern, text)
+        assert m, f"plugins/{name}/plugin.json: provenance.held_out_depth_error reads {text!r}"
+        found.append([float(v) for v in m.groups()])
+    whole, near, peak = (max(col) for col in zip(*found))
+    return {"whole": whole, "near": near, "peak": peak}
 
 
 def _folder(name: str) -> Path:
@@ -96,10 +110,11 @@ def test_virtual_frames_come_out_at_the_true_depth(name, pad_sim, monkeypatch):
                         grid.y_max_mm - (circles[:, 1] + 0.5) * grid.pitch_y_mm], 1)
     err = build_shipped.depth_errors_um(depths, truths, centres, circles[:, 2] * grid.pitch_x_mm)
     print(f"\n{name}: {err}")
-    assert err["whole_rmse_um_worst"] <= WHOLE_RMSE_UM
+    documented = documented_held_out_um()
+    assert err["whole_rmse_um_worst"] <= documented["whole"]
     assert err["near_rmse_um_mean"] <= NEAR_RMSE_MEAN_UM
-    assert err["near_rmse_um_worst"] <= NEAR_RMSE_UM
-    assert err["peak_error_um_worst"] <= PEAK_UM
+    assert err["near_rmse_um_worst"] <= documented["near"]
+    assert err["peak_error_um_worst"] <= documented["peak"]
     for d, t in zip(depths, truths):          # the press is where it is
         assert np.unravel_index(np.argmax(d), d.shape) == pytest.approx(
             np.unravel_index(np.argmax(t), t.shape), abs=1)

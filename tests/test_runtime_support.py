@@ -14,8 +14,9 @@ import numpy as np
 
 from tactile_deploy.imaging.camera_mapping import camera_mapping_from_parameters
 from tactile_deploy.imaging.shading import ShadingHeader, ShadingModel, save_shading
-from tactile_deploy.runtime.plugins import MODEL_GRID, SensorPlugin, write_plugin
+from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
 from tactile_deploy.pad.topology import MeshTopology
+from tactile_deploy.runtime.plugins import MODEL_GRID, SensorPlugin, write_plugin
 from tactile_deploy.runtime.sources.npz import save_clip
 
 FRAME_W, FRAME_H = 640, 480
@@ -107,10 +108,8 @@ def build_linear_onnx(path: Path, topology: MeshTopology, mesh_hash: str | None 
         inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
-    props = {"mesh_hash": mesh_hash or topology.mesh_hash}
-    if ood_threshold is not None:
-        props["ood_threshold"] = str(ood_threshold)
-    helper.set_model_props(model, props)
+    helper.set_model_props(model, mesh_model_metadata("gelslim_v1", mesh_hash or topology.mesh_hash,
+                                                      n, ood_threshold))
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
     return w

@@ -36,7 +36,6 @@ from tactile_deploy.imaging.shading import (
     load_shading,
     pixel_centres_mm,
     save_shading,
-    shading_header_json_schema,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -314,16 +313,6 @@ def test_frames_are_checked(small_model, synthetic):
         run.depth(frames[0].astype(np.float32))
     with pytest.raises(ShadingModelError, match=r"reference is 160x100"):
         DepthFromShading(small_model, train.reference[:100])
-
-
-def test_header_schema_is_committed():
-    import json
-
-    from calibration.shading.schema import SCHEMA_PATH, schema_text
-
-    assert SCHEMA_PATH.read_text() == schema_text(), (
-        "shading header JSON Schema drifted: run `python -m calibration.shading.schema`")
-    assert json.loads(schema_text()) == shading_header_json_schema()
 
 
 def test_annotation_errors(tmp_path):

@@ -15,7 +15,8 @@ pytest.importorskip("onnxscript")
 def test_train_export_parity(tmp_path, pad):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
     from training.config import TrainConfig
-    from training.export import export_run, make_session, run_session
+    from tactile_deploy.onnx_runtime.session import make_session
+    from training.export import export_run, run_session
     from training.train import load_bundle, train
 
     stage = {"epochs": 3, "batch_size": 16, "lr": 2e-3, "kl_weight": 1e-5}
@@ -69,7 +70,7 @@ def test_train_export_parity(tmp_path, pad):
     # the graph against the eager model, run here step by step (not the exporter's own reference)
     model, _ = load_bundle(run / "model.pt")
     held = held_all["depth_mm"][:5, None].astype(np.float32)
-    session = make_session(out)
+    session = make_session(out, providers="cpu")
     v, d, ood = run_session(session, held, batch=5)
     model.deploy_decoder = "lean"
     with torch.no_grad():

@@ -215,13 +215,6 @@ def test_redo_resume_and_config_checks(wizard_copy):
     assert res.exit_code == 2 and "belong to the wizard" in res.output
 
 
-def test_wizard_config_schema_is_committed():
-    from calibration.wizard.config import SCHEMA_PATH, schema_text
-
-    assert SCHEMA_PATH.read_text() == schema_text(), (
-        "wizard config JSON Schema drifted: run `python -m calibration.wizard.config`")
-
-
 def test_calibrate_fem_on_the_wizard_presses(wizard_run):
     """The FEM step as a plain command, on the rig presses of the wizard's work folder."""
     folder, _, _, _ = wizard_run

@@ -6,24 +6,21 @@ import hashlib
 import json
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.onnx_runtime.contract import DEPTH_DOC, FRAME, SENSOR_FAMILY
 
 CARD_FORMAT = 1
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-class PadInfo(_Strict):
+class PadInfo(StrictModel):
     name: str
     mesh_hash: str = Field(description="sha256 of the frozen pad mesh (vertex order contract).")
     n_nodes: int
 
 
-class FileInfo(_Strict):
+class FileInfo(StrictModel):
     onnx: str = Field(description="The shipped graph.")
     onnx_sha256: str
     onnx_mb: float
@@ -31,7 +28,7 @@ class FileInfo(_Strict):
     card_json: str
 
 
-class ModelCard(_Strict):
+class ModelCard(StrictModel):
     format_version: int = CARD_FORMAT
     name: str
     variant: str

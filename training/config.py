@@ -11,8 +11,9 @@ import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from tactile_deploy.fileformat import StrictModel
 from training.errors import UsageError
 
 FORMAT_VERSION = 1
@@ -26,11 +27,7 @@ def check_device(name: str) -> str:
     return name
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
-
-
-class ImageVAEConfig(_Strict):
+class ImageVAEConfig(StrictModel):
     resolution: int = Field(128, description="Depth map side, pixels (square).")
     widths: tuple[int, ...] = Field((32, 64, 128, 256, 512), description="Channels of the stride-2 convolutions.")
     kernel: int = Field(
@@ -52,7 +49,7 @@ class ImageVAEConfig(_Strict):
         return self
 
 
-class MeshVAEConfig(_Strict):
+class MeshVAEConfig(StrictModel):
     channels: tuple[int, ...] = Field((16, 16, 16, 32), description="Encoder features at levels 0..3.")
     cheb_k: tuple[int, ...] = Field((6, 6, 6, 6), description="Chebyshev order K at levels 0..3 (encoder and decoder).")
     factors: tuple[int, ...] = Field((4, 4, 4, 4), description="Node reduction per coarsening level.")
@@ -70,12 +67,12 @@ class MeshVAEConfig(_Strict):
         return self
 
 
-class ProjectionConfig(_Strict):
+class ProjectionConfig(StrictModel):
     hidden: tuple[int, ...] = Field((256, 512, 256), description="Widths of the fully connected layers.")
     activation: Literal["elu", "relu"] = "relu"
 
 
-class GridDecoderConfig(_Strict):
+class GridDecoderConfig(StrictModel):
     """The lean deployment decoder (:mod:`training.networks.grid_decoder`)."""
 
     grid: int = Field(64, description="Pixels per side of the in-plane grid (a power of two >= 8).")
@@ -83,7 +80,7 @@ class GridDecoderConfig(_Strict):
     half_extent_mm: float = Field(17.5, gt=0, description="The grid spans +-this in x and y, mm.")
 
 
-class LeanImageDecoderConfig(_Strict):
+class LeanImageDecoderConfig(StrictModel):
     """Small decoder of the image latent whose reconstruction error is the deployed ood_score."""
 
     channels: tuple[int, ...] = Field(
@@ -91,7 +88,7 @@ class LeanImageDecoderConfig(_Strict):
     )
 
 
-class ModelConfig(_Strict):
+class ModelConfig(StrictModel):
     image: ImageVAEConfig = Field(default_factory=ImageVAEConfig)
     mesh: MeshVAEConfig = Field(default_factory=MeshVAEConfig)
     projection: ProjectionConfig = Field(default_factory=ProjectionConfig)
@@ -99,7 +96,7 @@ class ModelConfig(_Strict):
     ood_decoder: LeanImageDecoderConfig = Field(default_factory=LeanImageDecoderConfig)
 
 
-class SyntheticData(_Strict):
+class SyntheticData(StrictModel):
     """Generate the data with the contact simulator (each rank of a distributed run its own shard)."""
 
     n_samples: int = Field(gt=0, description="Contacts per rank.")
@@ -132,7 +129,7 @@ class SyntheticData(_Strict):
     )
 
 
-class DataConfig(_Strict):
+class DataConfig(StrictModel):
     dataset_dir: str | None = Field(None, description="Folder of a simulated dataset (dataset.json + shards).")
     synthetic: SyntheticData | None = Field(None, description="Or generate the data at start-up.")
     cache_file: str | None = Field(None, description="npz cache of generated data (reused when present).")
@@ -146,7 +143,7 @@ class DataConfig(_Strict):
         return self
 
 
-class StageConfig(_Strict):
+class StageConfig(StrictModel):
     epochs: int = Field(gt=0)
     batch_size: int = Field(32, gt=0)
     lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
@@ -162,7 +159,7 @@ class StageConfig(_Strict):
     )
 
 
-class AugmentationConfig(_Strict):
+class AugmentationConfig(StrictModel):
     """Augmentation of the simulated depth maps (:mod:`training.augment`); ranges are (low, high)
     of uniform draws per map. Defaults: the ranges measured on the virtual GelSlim sensors
     (``python -m training.adaptation.domain_gap``, docs/adaptation.md)."""
@@ -196,7 +193,7 @@ class AugmentationConfig(_Strict):
         return self
 
 
-class TrainConfig(_Strict):
+class TrainConfig(StrictModel):
     format_version: int = FORMAT_VERSION
     run_dir: str = Field(description="Checkpoints, curves and the exported model go here.")
     device: str = Field("cpu", description="'cpu', 'cuda', 'cuda:1', or 'auto'.")

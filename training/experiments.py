@@ -33,8 +33,9 @@ import numpy as np
 import torch
 from pydantic import Field
 
+from tactile_deploy.fileformat import StrictModel
 from training import distributed
-from training.config import StageConfig, TrainConfig, _Strict
+from training.config import StageConfig, TrainConfig
 from training.networks.coarsening import build_hierarchy
 from training.networks.predictor import Predictor
 from training.train import (
@@ -50,7 +51,7 @@ from training.train import (
 )
 
 
-class ExperimentConfig(_Strict):
+class ExperimentConfig(StrictModel):
     base: TrainConfig = Field(description="Data, stage settings and model of every run (run_dir: scratch space).")
     latent_image: tuple[int, ...] = Field((64, 128, 256), description="d(z_I) of the latent-size grid.")
     latent_mesh: tuple[int, ...] = Field((64, 128, 256), description="d(z_M) of the latent-size grid.")

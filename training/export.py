@@ -40,7 +40,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from tactile_deploy.onnx_runtime.contract import DEPTH_DOC, FRAME, SENSOR_FAMILY
+from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
+from tactile_deploy.onnx_runtime.metadata import write_metadata
+from tactile_deploy.onnx_runtime.quantize import quantize_int8
+from tactile_deploy.onnx_runtime.session import make_session
 from training.errors import UsageError
 from training.networks.predictor import Predictor
 
@@ -217,64 +220,20 @@ def int8_nodes(model) -> list[str]:
 
 
 def quantise(fp32_path: Path, out_path: Path, calibration: np.ndarray, input_name: str = "depth") -> None:
-    """Static int8 QDQ quantisation of :func:`int8_nodes` (u8 activations, s8 per-channel weights,
-    MinMax calibration on ``calibration`` (K, 1, R, R) mm); onnxruntime fuses the QDQ pairs into
-    integer kernels. Everything else stays fp32."""
-    import logging
-
+    """Static int8 quantisation of :func:`int8_nodes` (:func:`tactile_deploy.onnx_runtime.quantize.quantize_int8`:
+    u8 activations, s8 per-channel weights, MinMax calibration on ``calibration`` (K, 1, R, R) mm).
+    Everything else stays fp32."""
     import onnx
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
     nodes = int8_nodes(onnx.load(str(fp32_path)))
     if not nodes:
         raise RuntimeError(f"{fp32_path}: no node to quantise (module paths missing from the export?)")
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.it = iter([{input_name: calibration[i : i + 1].astype(np.float32)} for i in range(len(calibration))])
-
-        def get_next(self):
-            return next(self.it, None)
-
-    level = logging.getLogger().level
-    logging.getLogger().setLevel(logging.ERROR)
-    try:
-        quantize_static(
-            str(fp32_path), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
-            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-            nodes_to_quantize=nodes,
-        )
-    finally:
-        logging.getLogger().setLevel(level)
-
-
-def make_session(path: str | Path, threads: int = 1):
-    """onnxruntime CPU session, ``threads`` intra-op threads, all graph optimisations."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.log_severity_level = 3
-    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    quantize_int8(fp32_path, out_path, calibration, nodes, input_name, keep_metadata=False)
 
 
 def run_session(session, depth_mm: np.ndarray, batch: int = 32) -> tuple[np.ndarray, ...]:
     outs = [session.run(None, {"depth": depth_mm[i : i + batch].astype(np.float32)}) for i in range(0, len(depth_mm), batch)]
     return tuple(np.concatenate([o[k] for o in outs]) for k in range(len(outs[0])))
-
-
-def write_metadata(path: Path, props: dict[str, str]) -> None:
-    import onnx
-
-    model = onnx.load(str(path))
-    del model.metadata_props[:]
-    for k, v in props.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = k, v
-    model.producer_name = "tactile-deploy training"
-    onnx.save(model, str(path))
 
 
 def _sha256(path: Path) -> str:
@@ -415,14 +374,14 @@ def export_run(
         # parity of the fp32 graph with torch, int8 against fp32, accuracy of the shipped graph
         k = min(n_parity, len(depth))
         ref_disp, ref_ood = torch_reference(model, variant, depth[:k])
-        _, fp32_disp, fp32_ood = run_session(make_session(tmp[ref_path]), depth[:k])
+        _, fp32_disp, fp32_ood = run_session(make_session(tmp[ref_path], providers="cpu"), depth[:k])
         parity = {
             "graph": ref_path.name,
             "n_inputs": k,
             "max_abs_diff_mm": float(np.abs(fp32_disp - ref_disp).max()),
             "ood_max_abs_diff_mm": float(np.abs(fp32_ood - ref_ood).max()),
         }
-        _, final_disp, final_ood = run_session(make_session(tmp[out]), depth)
+        _, final_disp, final_ood = run_session(make_session(tmp[out], providers="cpu"), depth)
         if ref_path != out:
             parity["shipped_vs_fp32_max_abs_diff_mm"] = float(np.abs(final_disp[:k] - fp32_disp).max())
             parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final_disp[:k] - fp32_disp) ** 2)))
@@ -443,7 +402,8 @@ def export_run(
 
         props = card_metadata(card_now())
         for p in {out, ref_path}:
-            write_metadata(tmp[p], props | {"variant": variant if p == out else fp32_variant})
+            write_metadata(tmp[p], props | {"variant": variant if p == out else fp32_variant},
+                           replace=True, producer="tactile-deploy training")
         card = card_now()
         write_card(card, tmp[final[2]], tmp[final[3]])
         with _signals_held():  # the new set into place (the twin of an older int8 export goes), not half
@@ -507,20 +467,10 @@ def calibration_maps(cfg, n: int = 256, heldout_seed: int | None = None) -> tupl
 
 
 def card_metadata(card: dict) -> dict[str, str]:
-    """ONNX metadata_props: what the runtime checks at load."""
-    return {
-        "format": "tactile-deploy.predictor/1",
-        "sensor_family": SENSOR_FAMILY,
-        "pad": card["pad"]["name"],
-        "mesh_hash": card["pad"]["mesh_hash"],
-        "n_nodes": str(card["pad"]["n_nodes"]),
-        "units": "mm",
-        "frame": FRAME,
-        "input.depth": DEPTH_DOC,
-        "output.vertices": "vertices [N, 5380, 3] float32, mm, deformed positions = rest + displacement",
-        "output.displacement": "displacement [N, 5380, 3] float32, mm, from the rest pad mesh",
-        "output.ood_score": "ood_score [N] float32, mm: RMS error of the depth map's reconstruction from the image VAE latent",
-        "ood_threshold": repr(card["ood_threshold_mm"]),
+    """ONNX metadata_props: the contract's entries (checked by the runtime at load) and where the
+    model comes from."""
+    return mesh_model_metadata(card["pad"]["name"], card["pad"]["mesh_hash"], card["pad"]["n_nodes"],
+                               card["ood_threshold_mm"]) | {
         "training_commit": card["training"]["commit"],
         "training_dirty": str(card["training"]["dirty"]).lower(),
         "dataset": json.dumps(card["training"]["data"], sort_keys=True),

@@ -23,7 +23,7 @@ origin; it is a calibrated value.
 
 Files are JSON, read with :func:`load_rig_config` and written atomically with
 :func:`save_rig_config`. The JSON Schema lives next to this module
-(``rig_config.schema.json``) and is regenerated with :func:`rig_config_schema`.
+(``rig_config.schema.json``) and is regenerated with ``python -m calibration.formats``.
 """
 
 from __future__ import annotations
@@ -35,9 +35,10 @@ import tempfile
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from calibration.rig.errors import RigConfigError
+from tactile_deploy.fileformat import StrictModel
 
 #: Version of the rig config file format written by :func:`save_rig_config`.
 RIG_CONFIG_FORMAT_VERSION = 1
@@ -49,18 +50,12 @@ Newline = Literal["\n", "\r", "\r\n"]
 AxisSign = Literal[1, -1]
 
 
-class _Strict(BaseModel):
-    """Base of every rig config model: unknown fields are errors, no NaN or inf."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
 def _check_range(name: str, limits: tuple[float, float]) -> None:
     if not limits[0] < limits[1]:
         raise ValueError(f"{name}={list(limits)} must be [min, max] with min < max")
 
 
-class StageFrame(_Strict):
+class StageFrame(StrictModel):
     """Where the sensor sits on the stage: the stage coordinates of the sensor-frame origin."""
 
     sensor_origin_x_mm: float = Field(
@@ -107,7 +102,7 @@ class StageFrame(_Strict):
         return self.sensor_to_stage(x_mm, y_mm, surface_z_mm - depth_mm)
 
 
-class StageConfig(_Strict):
+class StageConfig(StrictModel):
     """A three-axis stage that speaks G-code over a serial line."""
 
     kind: str = Field("gcode", description="Stage driver name (see calibration.rig.factory).")
@@ -179,7 +174,7 @@ class StageConfig(_Strict):
         return (self.x_limits_mm, self.y_limits_mm, self.z_limits_mm)
 
 
-class GaugeConfig(_Strict):
+class GaugeConfig(StrictModel):
     """A force gauge answering an ASCII request with one line, e.g. ``?`` -> ``12.34 N``."""
 
     kind: str = Field("ascii", description="Gauge driver name (see calibration.rig.factory).")
@@ -226,7 +221,7 @@ class GaugeConfig(_Strict):
         return value
 
 
-class RigConfig(_Strict):
+class RigConfig(StrictModel):
     """The whole indentation rig: stage, gauge and the pressing procedure."""
 
     format_version: Literal[1] = Field(
@@ -359,8 +354,3 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 def save_rig_config(config: RigConfig, path: str | os.PathLike) -> None:
     """Write ``config`` as JSON to ``path`` atomically (temporary file + rename)."""
     write_text_atomic(path, config.model_dump_json(indent=2) + "\n")
-
-
-def rig_config_schema() -> str:
-    """JSON Schema of :class:`RigConfig`, as the text committed in ``rig_config.schema.json``."""
-    return json.dumps(RigConfig.model_json_schema(), indent=2, sort_keys=True) + "\n"

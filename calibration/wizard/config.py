@@ -2,46 +2,41 @@
 
 One JSON file, every field optional (defaults suit a GelSlim-class sensor): the JSON Schema is
 committed as ``calibration/wizard/wizard_config.schema.json`` (``python -m
-calibration.wizard.config`` rewrites it; a test fails when it drifts). Lengths in mm, sensor
+calibration.formats`` rewrites it; a test fails when it drifts). Lengths in mm, sensor
 frame (origin at the centre of the sensing surface, z out of the gel).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from calibration.shading.fit import ShadingFitConfig
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.jsonfile import read_json, validation_error_text
 
 FORMAT_VERSION = 1
 SCHEMA_PATH = Path(__file__).with_name("wizard_config.schema.json")
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class WizardConfigError(ValueError):
     """A wizard config file is missing or invalid (the message names file, field, values)."""
 
 
-class ReferenceSettings(BaseModel):
+class ReferenceSettings(StrictModel):
     """Step 1: the no-contact reference frame."""
-
-    model_config = _STRICT
 
     n_frames: int = Field(16, ge=1, le=1000, description="Frames averaged into the reference "
                           "frame; their depth maps also give the noise reference.")
 
 
-class CameraSettings(BaseModel):
+class CameraSettings(StrictModel):
     """Step 2: the camera mapping (lens, homography to the sensing plane, mm per px)."""
-
-    model_config = _STRICT
 
     target: Literal["dots", "charuco", "crop"] = Field(
         "dots", description="'dots': a plate of pins on a square lattice pressed into the gel; "
@@ -84,10 +79,8 @@ class CameraSettings(BaseModel):
         return self
 
 
-class PressSettings(BaseModel):
+class PressSettings(StrictModel):
     """Step 3: ball presses for the shading model (and the FEM fit when forces are measured)."""
-
-    model_config = _STRICT
 
     ball_radius_mm: float = Field(3.0, gt=0, description="Radius of the calibration ball, mm.")
     n_presses: int = Field(24, ge=3, le=500, description="Number of presses, spread over the "
@@ -117,10 +110,8 @@ class PressSettings(BaseModel):
         return self
 
 
-class ShadingSettings(BaseModel):
+class ShadingSettings(StrictModel):
     """Step 4: the shading model (calibration.shading.fit.ShadingFitConfig settings)."""
-
-    model_config = _STRICT
 
     bins: int = Field(24, ge=4, le=128, description="Colour bins per channel.")
     node_spacing_mm: float = Field(3.0, gt=0, description="Spacing of the table's position "
@@ -143,10 +134,8 @@ class ShadingSettings(BaseModel):
         "bin's mean over the whole image).")
 
 
-class FemSettings(BaseModel):
+class FemSettings(StrictModel):
     """Step 5 (optional): the FEM material (nu from depth maps, E from forces)."""
-
-    model_config = _STRICT
 
     enabled: bool = Field(True, description="Run the FEM fit (otherwise the prior is used).")
     nu_grid: tuple[float, ...] = Field(
@@ -174,10 +163,8 @@ class FemSettings(BaseModel):
         return self
 
 
-class RigSettings(BaseModel):
+class RigSettings(StrictModel):
     """How the rig presses (None: the rig config's value, or its default)."""
-
-    model_config = _STRICT
 
     force_limit_n: float | None = Field(None, gt=0, description="Force at which a press stops "
                                         "and backs off, N.")
@@ -193,10 +180,8 @@ class RigSettings(BaseModel):
         return {k: v for k, v in self.model_dump().items() if v is not None}
 
 
-class WizardConfig(BaseModel):
+class WizardConfig(StrictModel):
     """The calibration wizard's settings (``--config FILE``)."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this format.")
     description: str = Field("", description="One line about the sensor (goes into the "
@@ -268,14 +253,3 @@ def load_wizard_config(path: str | os.PathLike) -> WizardConfig:
     doc = read_json(path, WizardConfigError, "a JSON wizard config")
     return wizard_config_from_dict(doc, str(path))
 
-
-def schema_text() -> str:
-    """The JSON Schema of :class:`WizardConfig` as committed."""
-    return json.dumps(WizardConfig.model_json_schema(), indent=2) + "\n"
-
-
-if __name__ == "__main__":
-    from tactile_deploy.atomic import write_text
-
-    write_text(SCHEMA_PATH, schema_text())
-    print(f"wrote {SCHEMA_PATH}")

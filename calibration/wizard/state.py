@@ -15,9 +15,10 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
 from tactile_deploy.atomic import write_json
+from tactile_deploy.fileformat import StrictModel
 
 STATE_NAME = "state.json"
 FORMAT_VERSION = 1
@@ -42,10 +43,10 @@ class WizardStateError(ValueError):
     """The work folder's state file is unreadable or belongs to another calibration."""
 
 
-class StepRecord(BaseModel):
+class StepRecord(StrictModel):
     """What one finished step produced."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=True)
+    model_config = ConfigDict(frozen=False, allow_inf_nan=True)  # NaN: not measured
 
     finished: str = Field(description="ISO time the step was accepted.")
     metrics: dict[str, Metric] = Field(default_factory=dict,
@@ -55,10 +56,10 @@ class StepRecord(BaseModel):
     notes: list[str] = Field(default_factory=list, description="What the step reported.")
 
 
-class WizardState(BaseModel):
+class WizardState(StrictModel):
     """``state.json``: the calibration in progress."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(frozen=False)  # the wizard records its progress in it
 
     format_version: Literal[1] = FORMAT_VERSION
     sensor: str = Field(description="Name of the plugin being made.")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.fem_fit.result import FemResult
 from calibration.shading.readout_finetune import finetune_unit_readout
 from calibration.shading.readout_gain import readout_depth_gain
 from calibration.wizard.config import WizardConfig
@@ -17,7 +18,7 @@ from tactile_deploy.runtime.pipeline import ImagingPipeline
 
 
 def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_frames, readout,
-                                presses_npz: dict, material: dict, out: Path, unit: str,
+                                presses_npz: dict, material: FemResult, out: Path, unit: str,
                                 log=None):
     """The design's ``readout`` fine-tuned on the kept presses of ``presses_npz`` and the
     no-contact ``ref_frames`` (:mod:`calibration.shading.readout_finetune`; targets: the
@@ -29,8 +30,8 @@ def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_
     if not keep.any():
         raise StepError("no kept presses to fine-tune the learned read-out on: redo the presses "
                         "step, or set readout_steps to 0 in the config")
-    offset = material.get("depth_offset_mm")
-    nu = material.get("nu", config.fem.prior_nu)
+    offset = material.depth_offset_mm
+    nu = material.nu
     profiles = press_profiles(config, d, camera, 4.0, offset or 0.0, nu)
     depths = np.stack([p.depth_map(camera.grid) for p in profiles])
     pipeline = ImagingPipeline(camera, shading, ref, None, "keep", readout=readout)
@@ -42,7 +43,8 @@ def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_
     return LearnedReadout(result.path), f"{result.summary()} ({source}, nu {nu:.3g})"
 
 
-def readout_gain(camera, shading, ref, noise, readout, d, material) -> tuple[float, str]:
+def readout_gain(camera, shading, ref, noise, readout, d,
+                 material: FemResult) -> tuple[float, str]:
     """The unit's depth gain of the learned read-out from the rig's presses
     (:mod:`calibration.shading.readout_gain`), and a line for the provenance."""
     tips = d["tip_mm"]
@@ -50,7 +52,7 @@ def readout_gain(camera, shading, ref, noise, readout, d, material) -> tuple[flo
     what = f"{readout.path.name} (design {readout.metadata.get('design', '?')})"
     if not use.any():
         return 1.0, (f"{what}; depth gain not calibrated (1): no rig presses of known depth")
-    offset = material.get("depth_offset_mm")
+    offset = material.depth_offset_mm
     pipeline = ImagingPipeline(camera, shading, ref, noise, "subtract", readout=readout)
     gain, ratios = readout_depth_gain(pipeline, d["raw"][use], tips[use, 2], offset or 0.0)
     source = (f"the rig's zero offset {1e3 * offset:+.1f} um from the FEM step"

@@ -22,8 +22,9 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.jsonfile import read_json
 
 CARD_FORMAT = 1
@@ -32,24 +33,19 @@ CARD_MD = "card.md"
 STEP_FILE = "step.pt2"
 FILTER_FILE = "filter.onnx"
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CardError(ValueError):
     """An adaptation step folder or card is missing, invalid, or does not match a model."""
 
 
-class FileEntry(BaseModel):
-    model_config = _STRICT
-
+class FileEntry(StrictModel):
     path: str = Field(description="Path relative to the step folder (POSIX separators).")
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the file's bytes.")
 
 
-class ParameterMapping(BaseModel):
+class ParameterMapping(StrictModel):
     """ONNX initializer = transform(parameter) * scale (scale: a constant folded at export)."""
-
-    model_config = _STRICT
 
     parameter: str = Field(description="Name of the step program's trainable parameter.")
     initializer: str = Field(description="Name of the initializer in the fp32 ONNX graph.")
@@ -58,10 +54,8 @@ class ParameterMapping(BaseModel):
     shape: tuple[int, ...] = Field(description="Shape of the parameter.")
 
 
-class AdaptationCard(BaseModel):
+class AdaptationCard(StrictModel):
     """``card.json`` of an adaptation step folder."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = CARD_FORMAT
     name: str
@@ -160,6 +154,6 @@ def render_markdown(card: AdaptationCard) -> str:
         "",
         *[f"- {k}: {v}" for k, v in card.versions.items()],
         "",
-        f"Defaults: " + ", ".join(f"{k} {v:g}" for k, v in card.defaults.items()) + ".",
+        "Defaults: " + ", ".join(f"{k} {v:g}" for k, v in card.defaults.items()) + ".",
         "",
     ])

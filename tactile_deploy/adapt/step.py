@@ -23,6 +23,7 @@ import numpy as np
 from tactile_deploy.adapt.card import AdaptationCard, CardError, load_card
 from tactile_deploy.adapt.weights import INSTALL_HINT, AdaptationUnavailable
 from tactile_deploy.checksums import file_sha256
+from tactile_deploy.onnx_runtime.session import make_session
 from tactile_deploy.safe_torch import weights_only_loads
 
 
@@ -127,13 +128,8 @@ class StepProgram:
     # -- the filter ----------------------------------------------------------------------------
     def filter_session(self):
         if self._filter is None:
-            import onnxruntime as ort
-
             path = _verified(self.card, self.folder, "filter")
-            so = ort.SessionOptions()
-            so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
-            so.log_severity_level = 3
-            self._filter = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            self._filter = make_session(path, threads=1, providers="cpu")
         return self._filter
 
 

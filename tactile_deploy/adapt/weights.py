@@ -6,7 +6,8 @@ that hold the encoder and the projection are replaced by the adapted tensors, as
 ``parameter_map`` says (``initializer = transform(parameter) x scale``); every other node,
 initializer and the metadata stay, so the adapted model follows the same contract
 (docs/onnx_contract.md). When the shipped family graph is int8, the adapted fp32 graph is
-quantised the same way (static QDQ, same nodes, calibrated on the adaptation's own depth maps).
+quantised the same way (:func:`tactile_deploy.onnx_runtime.quantize.quantize_int8`, same nodes,
+calibrated on the adaptation's own depth maps).
 
 Needs the ``onnx`` package (``pip install 'tactile-deploy[adapt]'``).
 """
@@ -20,6 +21,7 @@ import numpy as np
 
 from tactile_deploy.adapt.card import AdaptationCard, CardError
 from tactile_deploy.atomic import atomic_path
+from tactile_deploy.onnx_runtime.metadata import set_metadata
 
 
 class AdaptationUnavailable(RuntimeError):
@@ -66,75 +68,11 @@ def write_adapted_onnx(card: AdaptationCard, fp32_path: str | Path, weights: dic
                             f"adapted tensor {arr.shape}")
         old.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(arr), m.initializer))
     if metadata:
-        _merge_metadata(model, metadata)
+        set_metadata(model, metadata)
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp:
         onnx.save(model, str(tmp))
     return out_path
-
-
-def quantise_int8(fp32_path: str | Path, out_path: str | Path, calibration_mm: np.ndarray,
-                  nodes: list[str]) -> Path:
-    """Static int8 QDQ quantisation of ``nodes`` of ``fp32_path`` (u8 activations, s8 per-channel
-    weights, MinMax calibration on depth maps (K, 1, 128, 128) mm), as the family model was;
-    metadata copied. Written atomically to ``out_path``."""
-    import logging
-
-    onnx = require_onnx()
-    from onnxruntime.quantization import (
-        CalibrationDataReader,
-        QuantFormat,
-        QuantType,
-        quantize_static,
-    )
-
-    cal = np.asarray(calibration_mm, np.float32)
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.it = iter([{"depth": cal[i : i + 1]} for i in range(len(cal))])
-
-        def get_next(self):
-            return next(self.it, None)
-
-    out_path = Path(out_path)
-    level = logging.getLogger().level
-    logging.getLogger().setLevel(logging.ERROR)
-    try:
-        with atomic_path(out_path) as tmp:
-            quantize_static(str(fp32_path), str(tmp), Reader(), quant_format=QuantFormat.QDQ,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                            nodes_to_quantize=list(nodes))
-            src = onnx.load(str(fp32_path))
-            q = onnx.load(str(tmp))
-            del q.metadata_props[:]
-            for p in src.metadata_props:
-                e = q.metadata_props.add()
-                e.key, e.value = p.key, p.value
-            onnx.save(q, str(tmp))
-    finally:
-        logging.getLogger().setLevel(level)
-    return out_path
-
-
-def _merge_metadata(model, entries: dict[str, str]) -> None:
-    """Add or replace metadata entries of an in-memory ONNX model (order kept, new ones last)."""
-    props = {p.key: p.value for p in model.metadata_props}
-    props.update(entries)
-    del model.metadata_props[:]
-    for k, v in props.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = k, v
-
-
-def write_metadata_entries(path: str | Path, entries: dict[str, str]) -> None:
-    """Add or replace metadata entries of an ONNX file (atomic)."""
-    onnx = require_onnx()
-
-    model = onnx.load(str(path))
-    _merge_metadata(model, entries)
-    with atomic_path(path) as tmp:
-        onnx.save(model, str(tmp))
 
 
 def adaptation_metadata(card: AdaptationCard, report: dict) -> dict[str, str]:

@@ -45,13 +45,13 @@ from tactile_deploy.adapt.step import (
 )
 from tactile_deploy.adapt.weights import (
     adaptation_metadata,
-    quantise_int8,
     read_adapted_weights,
     write_adapted_onnx,
-    write_metadata_entries,
 )
 from tactile_deploy.atomic import atomic_path, write_json
 from tactile_deploy.camera.depth import DepthCamera
+from tactile_deploy.onnx_runtime.metadata import write_metadata
+from tactile_deploy.onnx_runtime.quantize import quantize_int8
 from tactile_deploy.onnx_runtime.session import make_session
 from tactile_deploy.pad.asset import load_pad
 from tactile_deploy.runtime.pipeline import FrameError, GridResampler, ImagingPipeline
@@ -313,7 +313,7 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
             "heldout_rmse_after_fp32_mm", "frames", "settings", "created")})
         for name in ("model.onnx", "model_fp32.onnx"):
             if (staging / name).is_file():
-                write_metadata_entries(staging / name, meta)
+                write_metadata(staging / name, meta)
         result.figure = staging / "adaptation.png"
         before_after_figure(depth[ho], target[ho], before.rendered_mm, after.rendered_mm, weight, result.figure,
                             before.rmse_mm, after.rmse_mm)
@@ -358,9 +358,9 @@ def _write_models(step: StepProgram, folder: Path, depth_train: np.ndarray, dept
     out = {"parity_fp32_onnx_vs_step_max_abs_diff_mm": parity, "int8": int8}
     if int8:
         cal = depth_train[np.random.default_rng(0).permutation(len(depth_train))[:256]][:, None]
-        quantise_int8(fp32_path, folder / "model.onnx", cal, card.int8_nodes)
+        quantize_int8(fp32_path, folder / "model.onnx", cal, card.int8_nodes)
 
-        write_metadata_entries(folder / "model.onnx", {"variant": card.family_variant + "-adapted"})
+        write_metadata(folder / "model.onnx", {"variant": card.family_variant + "-adapted"})
         q = make_session(folder / "model.onnx", threads=1, providers="cpu")
         q_disp = np.concatenate([q.run(["displacement"], {"depth": d[i:i + 32]})[0] for i in range(0, len(d), 32)])
         out["int8_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((q_disp - onnx_disp) ** 2)))

@@ -27,6 +27,8 @@ BENCHMARKS = {
     "adapt": "bench_adapt.py",
     "adapt-tables": "bench_adapt_tables.py",
     "discrepancy": "bench_discrepancy.py",
+    "recording": "bench_recording.py",
+    "families": "bench_families.py",
 }
 
 

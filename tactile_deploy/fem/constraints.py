@@ -31,14 +31,15 @@ class Supports(BaseModel):
       ``"rollers"``: the bottom may slide (u_z = 0 only), used by the patch tests; two pins
       (centre node in x and y, one rim node tangentially) then remove the rigid-body modes
       without restraining a uniform radial expansion.
-    * ``side="free"`` (the sensor) or ``"rollers"`` (zero normal displacement on the side wall,
-      the confined-layer test).
+    * ``side="free"`` (the sensor), ``"rollers"`` (zero normal displacement on the side wall,
+      the confined-layer test) or ``"fixed"`` (side walls held by a rigid frame: every side node
+      fixed).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     backplate: Literal["fixed", "rollers"] = Field("fixed", description="Bottom support.")
-    side: Literal["free", "rollers"] = Field("free", description="Side-wall support.")
+    side: Literal["free", "rollers", "fixed"] = Field("free", description="Side-wall support.")
 
     @property
     def key(self) -> str:
@@ -46,6 +47,13 @@ class Supports(BaseModel):
 
 
 SENSOR_SUPPORTS = Supports()
+
+
+def family_supports(family) -> Supports:
+    """How a pad family (:class:`~tactile_deploy.pad.family.PadFamily`) holds its pad: a bonded
+    backplate is fixed (a sliding one on rollers), fixed sides are fixed."""
+    return Supports(backplate="fixed" if family.backplate == "bonded" else "rollers",
+                    side="fixed" if family.sides == "fixed" else "free")
 
 
 @dataclass(frozen=True)
@@ -91,6 +99,9 @@ def _node_normals(mesh: PadMesh, supports: Supports) -> dict[int, list[np.ndarra
     for plane, normal in (("x0", np.eye(3)[0]), ("y0", np.eye(3)[1])):
         for i in mesh.symmetry_nodes[plane]:  # symmetry planes of a quarter model
             normals.setdefault(int(i), []).append(normal)
+    if supports.side == "fixed":
+        for i in mesh.side_nodes:
+            normals[int(i)] = [np.eye(3)[0], np.eye(3)[1], ez]
     if supports.side == "rollers":
         for i in mesh.side_nodes:
             for n in _side_normals(mesh, v[i]):

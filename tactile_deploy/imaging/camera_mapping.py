@@ -44,9 +44,10 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_text
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.jsonfile import read_json, validation_error_text
 
 #: Version of the camera mapping file format written by :func:`save_mapping`.
@@ -55,21 +56,18 @@ FORMAT_VERSION = 1
 # Relative tolerance when checking stored derived values (mm per px) against recomputation.
 _DERIVED_RTOL = 1e-6
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CameraMappingError(ValueError):
     """A camera mapping file or argument is invalid (the message says which and why)."""
 
 
-class OutputGrid(BaseModel):
+class OutputGrid(StrictModel):
     """The regular sensor-frame grid that frames are resampled onto (mm, sensor frame).
 
     Pixel (row i, column j) is centred at ``x = x_min_mm + (j + 0.5) * pitch_x_mm``,
     ``y = y_max_mm - (i + 0.5) * pitch_y_mm``: row 0 at the largest y.
     """
-
-    model_config = _STRICT
 
     x_min_mm: float = Field(-17.5, description="Left edge of the grid (not a pixel centre), mm.")
     x_max_mm: float = Field(17.5, description="Right edge of the grid, mm.")
@@ -97,10 +95,8 @@ class OutputGrid(BaseModel):
         return (self.y_max_mm - self.y_min_mm) / self.ny
 
 
-class Intrinsics(BaseModel):
+class Intrinsics(StrictModel):
     """Pinhole camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, px."""
-
-    model_config = _STRICT
 
     fx_px: float = Field(gt=0, description="Focal length along u, px.")
     fy_px: float = Field(gt=0, description="Focal length along v, px.")
@@ -108,10 +104,8 @@ class Intrinsics(BaseModel):
     cy_px: float = Field(description="Principal point v, px (pixel-centre convention).")
 
 
-class Distortion(BaseModel):
+class Distortion(StrictModel):
     """OpenCV lens distortion coefficients (dimensionless, on normalised coordinates)."""
-
-    model_config = _STRICT
 
     k1: float = Field(0.0, description="Radial, r^2 term.")
     k2: float = Field(0.0, description="Radial, r^4 term.")
@@ -120,10 +114,8 @@ class Distortion(BaseModel):
     k3: float = Field(0.0, description="Radial, r^6 term.")
 
 
-class FitSummary(BaseModel):
+class FitSummary(StrictModel):
     """How a mapping was estimated, and how well it fits its calibration points."""
-
-    model_config = _STRICT
 
     method: Literal["charuco-multi-view", "charuco-single-view", "dots-single-view"] = Field(
         description="Estimator: ChArUco with several views, ChArUco or pressed dots with one view."
@@ -151,14 +143,12 @@ class FitSummary(BaseModel):
 Row3 = tuple[float, float, float]
 
 
-class CameraMapping(BaseModel):
+class CameraMapping(StrictModel):
     """Everything needed to map a raw camera frame onto the sensor-frame output grid.
 
     Build one with :func:`camera_mapping_from_parameters` (which computes the derived fields),
     read one with :func:`load_mapping`.
     """
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     image_width_px: int = Field(gt=0, description="Width W of the raw frames, px.")
@@ -576,10 +566,6 @@ def load_mapping(path: str | os.PathLike) -> CameraMapping:
     except ValidationError as e:
         raise CameraMappingError(validation_error_text(path, e, "camera mapping")) from None
 
-
-def camera_mapping_json_schema() -> dict:
-    """JSON Schema of the camera mapping file (field descriptions included)."""
-    return CameraMapping.model_json_schema()
 
 
 def crop_camera_mapping(image_width_px: int, image_height_px: int, mm_per_px: float,

@@ -37,6 +37,8 @@ import numpy as np
 
 from tactile_deploy.imaging.camera_mapping import OutputGrid, grid_centres_mm
 from tactile_deploy.imaging.shading import frame_offset, reference_gain
+from tactile_deploy.onnx_runtime.errors import ModelContractError
+from tactile_deploy.onnx_runtime.session import make_session
 
 #: Version of the feature definition above; a network trained on another version is refused.
 FEATURE_VERSION = 1
@@ -103,19 +105,13 @@ class LearnedReadout:
     """
 
     def __init__(self, path: str | Path, threads: int = 1):
-        import onnxruntime as ort
-
         self.path = Path(path)
         if not self.path.is_file():
             raise ReadoutError(f"learned read-out {self.path} not found")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(str(self.path), opts,
-                                                providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise ReadoutError(f"learned read-out {self.path}: not a loadable ONNX model ({e})") from None
+            self.session = make_session(self.path, threads, providers="cpu")
+        except ModelContractError as e:
+            raise ReadoutError(f"learned read-out {e}") from None
         meta = self.session.get_modelmeta().custom_metadata_map
         self.metadata = dict(meta)
         fmt = meta.get("readout_format")

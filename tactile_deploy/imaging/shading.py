@@ -46,25 +46,23 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_npz
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.poisson import poisson_solver
 from tactile_deploy.jsonfile import validation_error_text
 
 FORMAT_VERSION = 1
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ShadingModelError(ValueError):
     """A shading model file, or a frame given to a model, is not what it must be."""
 
 
-class ShadingHeader(BaseModel):
+class ShadingHeader(StrictModel):
     """JSON header of a shading model file (``.npz`` key ``header_json``)."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     method: Literal["binned-lut-position"] = Field(
@@ -398,7 +396,3 @@ def load_shading(path: str | os.PathLike) -> ShadingModel:
     except ShadingModelError as e:
         raise ShadingModelError(f"{path}: {e}") from None
 
-
-def shading_header_json_schema() -> dict:
-    """JSON Schema of the shading model header (field descriptions included)."""
-    return ShadingHeader.model_json_schema()

@@ -18,6 +18,7 @@ from torch import nn
 
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.imaging.learned_readout import N_FEATURES
+from tactile_deploy.onnx_runtime.metadata import set_metadata
 
 #: Depth is learned in these units (mm) so that its loss weighs like the gradients'.
 DEPTH_UNIT_MM = 0.1
@@ -95,7 +96,5 @@ def export_onnx(net, out: Path, metadata: dict) -> None:
                                         "gradients": {0: "batch", 2: "rows", 3: "columns"}},
                           dynamo=False)
         model = onnx.load(str(tmp))
-        for key, value in metadata.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = key, str(value)
+        set_metadata(model, metadata)
         onnx.save(model, str(tmp))

@@ -2,7 +2,9 @@
 
 Input ``depth`` (N, 1, 128, 128) float32 mm on the model grid; outputs ``vertices`` (N, n, 3)
 float32 mm (sensor frame, the pad asset's vertex order), ``displacement`` (N, n, 3) mm and
-``ood_score`` (N,); metadata ``mesh_hash`` equal to the pad mesh's content hash.
+``ood_score`` (N,). Metadata, written at export (:func:`mesh_model_metadata`) and checked at load
+(:func:`check_model_contract`): the format and its version, the units, the frame, the input's
+documentation, the pad, its mesh hash (equal to the pad mesh's content hash) and the node count.
 """
 
 from __future__ import annotations
@@ -20,6 +22,10 @@ META_MESH_HASH = "mesh_hash"
 META_OOD_THRESHOLD = "ood_threshold"
 GRID = 128
 
+#: The mesh model format this version writes and reads (metadata ``format``).
+MESH_MODEL_FORMAT = "tactile-deploy.predictor/1"
+#: The length unit of every input and output (metadata ``units``).
+UNITS = "mm"
 #: Sensor family, frame and input documentation written into the mesh model's metadata and card.
 SENSOR_FAMILY = "gelslim"
 FRAME = (
@@ -33,9 +39,39 @@ DEPTH_DOC = (
 )
 
 
+#: Metadata entries whose value must be exactly this version's (checked at load).
+FIXED_ENTRIES = {"format": MESH_MODEL_FORMAT, "units": UNITS, "frame": FRAME,
+                 "input.depth": DEPTH_DOC}
+
+
+def mesh_model_metadata(pad: str, mesh_hash: str, n_nodes: int,
+                        ood_threshold_mm: float | None = None,
+                        sensor_family: str = SENSOR_FAMILY) -> dict[str, str]:
+    """The contract entries of a mesh model's metadata (docs/onnx_contract.md)."""
+    meta = {
+        "format": MESH_MODEL_FORMAT,
+        "sensor_family": sensor_family,
+        "pad": pad,
+        "mesh_hash": mesh_hash,
+        "n_nodes": str(int(n_nodes)),
+        "units": UNITS,
+        "frame": FRAME,
+        "input.depth": DEPTH_DOC,
+        "output.vertices": f"vertices [N, {n_nodes}, 3] float32, mm, deformed positions = rest + "
+                           "displacement",
+        "output.displacement": f"displacement [N, {n_nodes}, 3] float32, mm, from the rest pad mesh",
+        "output.ood_score": "ood_score [N] float32, mm: RMS error of the depth map's "
+                            "reconstruction from the image VAE latent",
+    }
+    if ood_threshold_mm is not None:
+        meta["ood_threshold"] = repr(float(ood_threshold_mm))
+    return meta
+
+
 def check_model_contract(model_path, expected_mesh_hash: str | None, n_nodes: int | None = None,
                          what: str = "model", session=None) -> dict:
-    """Check names, shapes and the mesh hash of an ONNX model; returns its metadata.
+    """Check names, shapes and metadata (format, units, frame, mesh hash, node count) of an ONNX
+    mesh model; returns its metadata.
 
     Raises :class:`ModelContractError` naming the model, what was expected and what was found.
     """
@@ -67,6 +103,15 @@ def check_model_contract(model_path, expected_mesh_hash: str | None, n_nodes: in
     if META_MESH_HASH not in meta:
         raise ModelContractError(f"{where}: metadata {META_MESH_HASH!r} is missing; export the "
                                  "model with the pad's content hash in its metadata")
+    for key, value in FIXED_ENTRIES.items():
+        if meta.get(key) != value:
+            raise ModelContractError(
+                f"{where}: metadata {key!r} must be {value!r} (what this version of "
+                f"tactile-deploy reads), the model has {meta.get(key)!r}; export the model again "
+                "with this version (python -m training export)")
+    if n_nodes is not None and meta.get("n_nodes") != str(n_nodes):
+        raise ModelContractError(f"{where}: metadata 'n_nodes' must be '{n_nodes}' (the pad's "
+                                 f"node count), the model has {meta.get('n_nodes')!r}")
     if expected_mesh_hash is not None and meta[META_MESH_HASH] != expected_mesh_hash:
         raise ModelContractError(
             f"{where}: its mesh hash {meta[META_MESH_HASH][:16]}... differs from the sensor "

@@ -40,9 +40,10 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_text
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.camera_mapping import (
     CameraMapping,
     camera_mapping_from_parameters,
@@ -52,7 +53,6 @@ from tactile_deploy.jsonfile import read_json
 #: Version of the optics model file format.
 FORMAT_VERSION = 1
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 RGB = tuple[float, float, float]
 XYZ = tuple[float, float, float]
@@ -62,10 +62,8 @@ class OpticsModelError(ValueError):
     """An optics model file or argument is invalid (the message names the file and field)."""
 
 
-class Light(BaseModel):
+class Light(StrictModel):
     """One LED (or LED group) illuminating the inside of the sensing membrane."""
-
-    model_config = _STRICT
 
     name: str = Field("led", description="Label of the light, e.g. 'red'.")
     kind: Literal["directional", "point"] = Field(
@@ -119,11 +117,9 @@ class Light(BaseModel):
         return (x / r, y / r) if r > 0 else (0.0, 0.0)
 
 
-class Vignetting(BaseModel):
+class Vignetting(StrictModel):
     """Radial darkening of the lens: gain ``1 + k2 rho^2 + k4 rho^4``, rho = distance from the
     principal point divided by the half diagonal of the image (0 centre, 1 corner)."""
-
-    model_config = _STRICT
 
     k2: float = Field(0.0, ge=-1.0, le=1.0, description="rho^2 coefficient, dimensionless.")
     k4: float = Field(0.0, ge=-1.0, le=1.0, description="rho^4 coefficient, dimensionless.")
@@ -137,22 +133,18 @@ class Vignetting(BaseModel):
         return self
 
 
-class GelTexture(BaseModel):
+class GelTexture(StrictModel):
     """Albedo texture of the membrane coating: ``albedo = 1 + rms * g(x, y)``, g a Gaussian
     random field of unit variance with Gaussian correlation length ``length_mm`` (sensor
     frame), fixed for a sensor by ``seed``."""
-
-    model_config = _STRICT
 
     rms: float = Field(0.0, ge=0.0, le=0.3, description="Relative albedo variation (1 sigma).")
     length_mm: float = Field(0.15, ge=0.05, le=5.0, description="Correlation length, mm.")
     seed: int = Field(0, ge=0, description="Seed of the texture field.")
 
 
-class SensorNoise(BaseModel):
+class SensorNoise(StrictModel):
     """Image sensor noise in grey levels: variance ``read^2 + gain * signal``."""
-
-    model_config = _STRICT
 
     read_noise_grey: float = Field(0.0, ge=0.0, le=20.0, description="Read noise, grey levels "
                                    "(1 sigma).")
@@ -161,10 +153,8 @@ class SensorNoise(BaseModel):
         "is this times the signal in grey levels (0 = no shot noise).")
 
 
-class OpticsModel(BaseModel):
+class OpticsModel(StrictModel):
     """Everything between the deformed sensing surface and the 8-bit RGB frame."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     camera: CameraMapping = Field(description="Camera resolution, lens and homography to the "

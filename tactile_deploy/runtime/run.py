@@ -37,8 +37,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from tactile_deploy.runtime.pipeline import FrameError, Laps, frame_to_mesh
+from tactile_deploy.runtime.run_record import RunRecord
 from tactile_deploy.runtime.sinks import FrameResult
 
 log = logging.getLogger(__name__)
@@ -236,7 +238,9 @@ class Runner:
         if o.out_dir is not None:
             from tactile_deploy.runtime.writers import MeshWriter
 
-            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
+            pipeline = getattr(self.predictor, "pipeline", None)
+            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm,
+                                     depth_grid=getattr(pipeline, "depth_grid", None))
             from tactile_deploy.runtime.frame_log import FrameLog
 
             self._frame_log = FrameLog(o.out_dir, self.writer)
@@ -350,11 +354,15 @@ class Runner:
         s.stage_p50_ms = {k: round(r.pct(50), 4) for k, r in self._stages.items()}
         self._close_outputs()
         if self.opt.out_dir is not None:
-            from tactile_deploy.atomic import write_json
+            from tactile_deploy.atomic import finite_or_null, write_json
 
+            doc = finite_or_null({**asdict(s), "finished": _dt.datetime.now().isoformat(timespec="seconds")})
             try:
-                write_json(self.opt.out_dir / "run.json",
-                           {**asdict(s), "finished": _dt.datetime.now().isoformat(timespec="seconds")})
+                doc = RunRecord.model_validate(doc).model_dump(mode="json")
+            except ValidationError as e:  # a defect: keep the summary all the same
+                log.error("the run summary breaks the run.json format (%s); written as it is", e)
+            try:
+                write_json(self.opt.out_dir / "run.json", doc)
             except OSError as e:
                 log.error("could not write the run summary into %s: %s", self.opt.out_dir, e)
 

@@ -51,10 +51,11 @@ from pathlib import Path
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_json, write_npz
 from tactile_deploy.fem.material import Material
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.simulation.contact import (
     DEPTH_DETAIL_MEANING,
@@ -83,10 +84,8 @@ SHARD_UNITS = {
 }
 
 
-class DatasetSpec(BaseModel):
+class DatasetSpec(StrictModel):
     """What to generate. Lengths in mm, angles in degrees."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     n_samples: int = Field(gt=0, description="Number of contacts.")
     indenters: tuple[str, ...] = Field(min_length=1, description="Indenter names or mesh paths.")
@@ -121,8 +120,8 @@ class DatasetSpec(BaseModel):
         return min(self.shard_size, self.n_samples - index * self.shard_size)
 
 
-class ShardRecord(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class ShardRecord(StrictModel):
+    model_config = ConfigDict(frozen=False, allow_inf_nan=True)
 
     file: str
     n_samples: int
@@ -130,10 +129,10 @@ class ShardRecord(BaseModel):
     rejected_poses: int = Field(description="Poses redrawn because they touched no sensing node.")
 
 
-class DatasetCard(BaseModel):
+class DatasetCard(StrictModel):
     """The dataset's description (``dataset.json``)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(frozen=False)  # shards are recorded as they are written
 
     format_version: int = 1
     generator_version: str = GENERATOR_VERSION

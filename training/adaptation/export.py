@@ -119,9 +119,9 @@ def check_inputs(bundle_path: Path, n: int = 16) -> np.ndarray:
 
 
 def _onnx_session(path: Path):
-    from training.export import make_session
+    from tactile_deploy.onnx_runtime.session import make_session
 
-    return make_session(path)
+    return make_session(path, providers="cpu")
 
 
 def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, filter_kind: str = "vae",

@@ -8,10 +8,10 @@ import numpy as np
 
 from calibration.fem_fit.fit import fit_fem_parameters, render_contact
 from calibration.fem_fit.operator_bank import OperatorBank
+from calibration.fem_fit.result import FemResult, write_fem_result
 from calibration.wizard.context import Context, Outcome, StepError
 from calibration.wizard.figures import fem_figure
 from calibration.wizard.press_data import contacts_from_work
-from tactile_deploy.atomic import write_json
 from tactile_deploy.camera.depth import DepthCamera
 from tactile_deploy.indenters import get_indenter
 from tactile_deploy.pad.asset import load_pad
@@ -22,8 +22,8 @@ def step_fem(ctx: Context) -> Outcome:
     forces; without forces E is reported as not identifiable and the prior is kept."""
     cfg = ctx.config.fem
     if not cfg.enabled:
-        write_json(ctx.work.path("fem.json"), {"E_mpa": cfg.prior_E_mpa, "nu": cfg.prior_nu,
-                                               "source": "prior (FEM fit off in the config)"})
+        write_fem_result(ctx.work.path("fem.json"), FemResult(
+            E_mpa=cfg.prior_E_mpa, nu=cfg.prior_nu, source="prior (FEM fit off in the config)"))
         return Outcome({"E (MPa)": cfg.prior_E_mpa, "nu": cfg.prior_nu},
                        [], ["FEM fit off (fem.enabled = false): the prior goes into the plugin"])
 
@@ -48,12 +48,13 @@ def step_fem(ctx: Context) -> Outcome:
             fm.append(c.force_n)
             fs.append(res.E_mpa * render_contact(bank, res.nu, cam, get_indenter(c.indenter),
                                                  p)[1])
-    write_json(ctx.work.path("fem.json"), {
-        "E_mpa": E, "nu": res.nu, "source": source, "nu_std": res.nu_std,
-        "E_std_mpa": res.E_std_mpa, "E_note": res.E_note, "nu_note": res.nu_note,
-        "friction_note": res.friction_note, "depth_gap_um": 1e3 * res.rmse_mm,
-        "depth_offset_mm": res.depth_offset_mm,
-        "forces_measured_n": fm, "forces_fitted_n": fs})
+    write_fem_result(ctx.work.path("fem.json"), FemResult(
+        E_mpa=E, nu=res.nu, source=source, nu_std=_finite(res.nu_std),
+        E_std_mpa=_finite(res.E_std_mpa), E_note=res.E_note, nu_note=res.nu_note,
+        friction=res.friction, friction_note=res.friction_note,
+        depth_gap_um=_finite(1e3 * res.rmse_mm), depth_offset_mm=res.depth_offset_mm,
+        method=res.method, evaluations=res.evaluations, n_contacts=len(contacts),
+        forces_measured_n=[float(f) for f in fm], forces_fitted_n=[float(f) for f in fs]))
     fig = fem_figure(ctx.work.figures / "fem.png", res.objective_curve, res.nu, fm, fs)
     metrics = {"contacts": len(contacts), "nu": res.nu,
                "nu bootstrap std": (res.nu_std if math.isfinite(res.nu_std)
@@ -67,3 +68,8 @@ def step_fem(ctx: Context) -> Outcome:
         err = np.abs(np.array(fs) / np.array(fm) - 1)
         metrics["force fit, median |error| (%)"] = float(100 * np.median(err))
     return Outcome(metrics, [fig], [f"nu: {res.nu_note}", f"E: {res.E_note}"])
+
+
+def _finite(x: float | None) -> float | None:
+    """``x``, or None when it is not a finite number (not measured)."""
+    return None if x is None or not math.isfinite(x) else float(x)

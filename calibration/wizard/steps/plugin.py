@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.fem_fit.result import FemResultError, read_fem_result
 from calibration.shading.readout_finetune import FinetuneUnavailable
 from calibration.wizard.context import Context, Outcome, StepError
 from calibration.wizard.figures import plugin_figure
@@ -88,7 +89,13 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     shutil.copyfile(ctx.work.path("shading.npz"), folder / "shading.npz")
     write_png(folder / "reference.png", ref)
     d = load_npz(ctx.work, "presses.npz")
-    material = json.loads(ctx.work.path("fem.json").read_text())
+    try:
+        material = read_fem_result(ctx.work.path("fem.json"))
+    except FemResultError as e:
+        raise StepError(str(e)) from None
+    if material.E_mpa is None:
+        raise StepError(f"{ctx.work.path('fem.json')}: field 'E_mpa' is null (E not identifiable); "
+                        "redo the FEM step, which falls back to the prior E")
     readout, tune_note = None, None
     if cfg.readout is not None:
 
@@ -131,8 +138,7 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
         "family": {"name": cfg.family, "pad": cfg.family, "pad_version": 1,
                    "mesh_hash": topo.mesh_hash},
         "camera": json.loads(camera.model_dump_json()),
-        "material": {"E_mpa": float(material["E_mpa"]), "nu": float(material["nu"]),
-                     "source": material["source"]},
+        "material": {"E_mpa": material.E_mpa, "nu": material.nu, "source": material.source},
         "default_source": _default_source(ctx),
         "noise_handling": "subtract",
         "provenance": prov,

@@ -39,7 +39,6 @@ from tactile_deploy.runtime.plugins.manifest import (
     PluginError,
     PluginManifest,
     load_manifest,
-    manifest_json_schema,
 )
 from tactile_deploy.runtime.plugins.validation import ValidationReport, validate_plugin
 from tactile_deploy.runtime.plugins.writing import copy_plugin, write_plugin
@@ -48,6 +47,6 @@ __all__ = [
     "ENTRY_POINT_GROUP", "FORMAT_VERSION", "MANIFEST_NAME", "MODEL_GRID", "PLUGIN_PATH_ENV",
     "FamilySpec", "FileRef", "MaterialSpec", "NoiseReferenceSpec", "PluginEntry", "PluginError",
     "PluginHooks", "PluginLocation", "PluginManifest", "SensorPlugin", "ValidationReport",
-    "copy_plugin", "discover_plugins", "find_plugin", "load_manifest", "manifest_json_schema",
+    "copy_plugin", "discover_plugins", "find_plugin", "load_manifest",
     "search_path", "validate_plugin", "write_plugin",
 ]

@@ -5,7 +5,7 @@ its sha256: the shading model (``.npz``), the no-contact reference frame (PNG, r
 pixels), the noise reference (``.npy`` depth map on the model's grid), the demo clip (``.npz`` or
 a video) and, usually outside the folder, the ONNX model of the sensor family. Relative paths in
 a manifest are relative to the plugin folder. The committed JSON Schema is
-``tactile_deploy/runtime/manifest.schema.json`` (:mod:`tactile_deploy.runtime.schema`).
+``tactile_deploy/runtime/manifest.schema.json`` (``python -m tactile_deploy.formats`` rewrites it).
 """
 
 from __future__ import annotations
@@ -16,15 +16,15 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     ValidationError,
     model_validator,
 )
 
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.runtime.drift import ReferenceRange
 from tactile_deploy.runtime.sources.config import SourceConfig
 
 #: Version of the manifest format this code reads and writes.
@@ -34,7 +34,6 @@ MANIFEST_NAME = "plugin.json"
 #: The depth grid every model of this project takes: +-17.5 mm, 128 x 128 (sensor frame).
 MODEL_GRID = OutputGrid()
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 _SHA256 = r"^[0-9a-f]{64}$"
 #: What a plugin name (and so a plugin folder's name) may be.
 NAME_PATTERN = r"^[a-z0-9][a-z0-9_\-]*$"
@@ -46,20 +45,16 @@ class PluginError(ValueError):
 
 
 # ------------------------------------------------------------------------------------ manifest
-class FileRef(BaseModel):
+class FileRef(StrictModel):
     """A file of the plugin and its checksum."""
-
-    model_config = _STRICT
 
     path: str = Field(min_length=1, description="File path, relative to the plugin folder "
                       "(POSIX separators) or absolute.")
     sha256: str = Field(pattern=_SHA256, description="sha256 of the file's bytes, lower-case hex.")
 
 
-class FamilySpec(BaseModel):
+class FamilySpec(StrictModel):
     """The sensor family: which pad mesh its model outputs."""
-
-    model_config = _STRICT
 
     name: str = Field(min_length=1, description="Family name, e.g. 'gelslim'.")
     pad: str = Field("gelslim", description="Shipped pad asset the model's vertices follow "
@@ -69,10 +64,8 @@ class FamilySpec(BaseModel):
                            "model's metadata must carry the same hash.")
 
 
-class MaterialSpec(BaseModel):
+class MaterialSpec(StrictModel):
     """The calibrated gel material used for contact forces."""
-
-    model_config = _STRICT
 
     E_mpa: float = Field(gt=0, le=1e4, description="Young's modulus, MPa (scales forces).")
     nu: float = Field(ge=0.0, lt=0.5, description="Poisson's ratio (sets the stiffness shape).")
@@ -88,26 +81,27 @@ class NoiseReferenceSpec(FileRef):
         "to its inputs, as in the paper's augmentation).")
 
 
-class PluginManifest(BaseModel):
+class PluginManifest(StrictModel):
     """``plugin.json``: everything the runtime needs to turn this sensor's frames into meshes."""
-
-    model_config = _STRICT
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     name: str = Field(pattern=NAME_PATTERN,
                       description="Plugin name (lower case, digits, '-' and '_').")
     description: str = Field("", description="One line about the sensor.")
     family: FamilySpec = Field(description="Sensor family and its pad mesh.")
-    model: FileRef = Field(description="ONNX model of the family: depth (N, 1, 128, 128) mm -> "
-                           "vertices (N, n, 3) mm (docs/onnx_contract.md).")
+    model: FileRef | None = Field(
+        None, description="ONNX model of the family: depth (N, 1, 128, 128) mm -> vertices "
+        "(N, n, 3) mm (docs/onnx_contract.md); null when the family has no learned model yet: "
+        "meshes then come from the physics lift of the pad (`run --mesh physics`).")
     adapted_model: FileRef | None = Field(
         None, description="Optional model adapted to this very sensor; used instead of `model` "
         "unless the user asks for the family model.")
     camera: CameraMapping = Field(description="Camera mapping: lens, homography to the sensing "
                                   "plane, and the imaging grid the shading model works on.")
     depth_grid: OutputGrid = Field(default_factory=OutputGrid,
-                                   description="Grid of the model's input depth map: +-17.5 mm, "
-                                   "128 x 128, row 0 at the largest y.")
+                                   description="Grid of the depth maps: the pad family's depth "
+                                   "grid (the GelSlim model's: +-17.5 mm, 128 x 128), row 0 at "
+                                   "the largest y.")
     shading: FileRef = Field(description="Shading model (.npz with JSON header) fitted on frames "
                              "rectified onto the camera's imaging grid.")
     readout: FileRef | None = Field(
@@ -134,30 +128,31 @@ class PluginManifest(BaseModel):
         "(None: the model's own threshold from its metadata).")
     provenance: dict[str, str] = Field(default_factory=dict,
                                        description="How the plugin was made (tool, date, inputs).")
+    reference_range: ReferenceRange | None = Field(
+        None, description="What the calibration saw of the no-contact image (illumination "
+        "drift, noise): `tactile-deploy run` warns when frames drift beyond it.")
 
     @model_validator(mode="after")
     def _check(self) -> PluginManifest:
-        if self.depth_grid != MODEL_GRID:
-            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()}, got "
-                             f"{self.depth_grid.model_dump()}")
+        if self.model is not None and self.depth_grid != MODEL_GRID:
+            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()} (the "
+                             f"learned model's input), got {self.depth_grid.model_dump()}")
         return self
 
     def files(self) -> dict[str, FileRef]:
         """Every file reference of the manifest, by field name."""
-        out = {"model": self.model, "shading": self.shading,
+        out = {"shading": self.shading,
                "reference_frame": self.reference_frame,
                "noise_reference": self.noise_reference, "demo_clip": self.demo_clip,
                "topology": self.topology}
+        if self.model is not None:
+            out["model"] = self.model
         if self.adapted_model is not None:
             out["adapted_model"] = self.adapted_model
         if self.readout is not None:
             out["readout"] = self.readout
         return out
 
-
-def manifest_json_schema() -> dict:
-    """JSON Schema of ``plugin.json`` (field descriptions included)."""
-    return PluginManifest.model_json_schema()
 
 
 def load_manifest(path: str | os.PathLike) -> PluginManifest:

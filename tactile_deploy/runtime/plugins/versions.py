@@ -29,10 +29,11 @@ import socket
 from pathlib import Path
 from typing import Callable
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from tactile_deploy.atomic import write_json
 from tactile_deploy.checksums import file_sha256
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.jsonfile import read_json
 
 log = logging.getLogger(__name__)
@@ -41,12 +42,9 @@ ADAPTED_DIR = "adapted"
 HISTORY_FILE = "history.json"
 MODEL_FILE = "model.onnx"
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-class VersionRecord(BaseModel):
-    model_config = _STRICT
-
+class VersionRecord(StrictModel):
     version: int = Field(ge=1)
     model: str = Field(description="Model path relative to the plugin folder.")
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the model file.")
@@ -58,9 +56,7 @@ class VersionRecord(BaseModel):
     summary: str = Field(description="One line: frames, steps, time.")
 
 
-class AdaptationHistory(BaseModel):
-    model_config = _STRICT
-
+class AdaptationHistory(StrictModel):
     format_version: int = 1
     versions: list[VersionRecord] = Field(default_factory=list)
     active: int | None = Field(None, description="Active version, or None: the plugin's own model.")

@@ -13,24 +13,20 @@ import re
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+from tactile_deploy.fileformat import StrictModel
 
 
-class DemoSourceConfig(BaseModel):
+class DemoSourceConfig(StrictModel):
     """The plugin's recorded demo clip (works on a machine without a sensor)."""
-
-    model_config = _STRICT
 
     kind: Literal["demo"] = Field("demo", description="Source kind.")
     loop: bool = Field(False, description="Start again at the first frame after the last.")
 
 
-class CameraSourceConfig(BaseModel):
+class CameraSourceConfig(StrictModel):
     """A live camera through OpenCV (V4L2 on Linux), by index, device path or serial number."""
-
-    model_config = _STRICT
 
     kind: Literal["camera"] = Field("camera", description="Source kind.")
     device: int | str = Field(
@@ -59,10 +55,8 @@ class CameraSourceConfig(BaseModel):
                                  "attempts, s (waits double from 0.1 s up to this).")
 
 
-class VideoSourceConfig(BaseModel):
+class VideoSourceConfig(StrictModel):
     """A video file (any container and codec the installed OpenCV reads)."""
-
-    model_config = _STRICT
 
     kind: Literal["video"] = Field("video", description="Source kind.")
     path: str = Field(description="Video file (relative paths: to the current folder, or to "
@@ -70,10 +64,8 @@ class VideoSourceConfig(BaseModel):
     loop: bool = Field(False, description="Start again at the first frame after the last.")
 
 
-class ImageFolderSourceConfig(BaseModel):
+class ImageFolderSourceConfig(StrictModel):
     """A folder of still images, read in name order."""
-
-    model_config = _STRICT
 
     kind: Literal["images"] = Field("images", description="Source kind.")
     path: str = Field(description="Folder of images.")
@@ -84,20 +76,16 @@ class ImageFolderSourceConfig(BaseModel):
     loop: bool = Field(False, description="Start again at the first frame after the last.")
 
 
-class NpzSourceConfig(BaseModel):
+class NpzSourceConfig(StrictModel):
     """A recording in tactile-deploy's .npz clip format (see docs/runtime.md)."""
-
-    model_config = _STRICT
 
     kind: Literal["npz"] = Field("npz", description="Source kind.")
     path: str = Field(description="Recorded clip (.npz with 'frames' and 'timestamps_ns').")
     loop: bool = Field(False, description="Start again at the first frame after the last.")
 
 
-class VirtualSourceConfig(BaseModel):
+class VirtualSourceConfig(StrictModel):
     """A virtual sensor: simulated presses rendered as camera frames."""
-
-    model_config = _STRICT
 
     kind: Literal["virtual"] = Field("virtual", description="Source kind.")
     sensor: str | None = Field(None, description="Virtual sensor name (None: the plugin's name).")

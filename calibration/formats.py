@@ -1,0 +1,27 @@
+"""The file formats of :mod:`calibration` and their committed JSON Schemas (``python -m calibration.formats``
+rewrites them; see :mod:`tactile_deploy.fileformat`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from calibration.fem_fit.result import FemResult
+from calibration.rig.config import RIG_CONFIG_SCHEMA_PATH, RigConfig
+from calibration.wizard.config import SCHEMA_PATH as WIZARD_CONFIG_SCHEMA
+from calibration.wizard.config import WizardConfig
+from calibration.wizard.state import WizardState
+from tactile_deploy.fileformat import Format, schemas_main
+
+_HERE = Path(__file__).resolve().parent
+
+#: Every file format of the calibrations, by name.
+FORMATS = {f.name: f for f in (
+    Format("wizard config", WizardConfig, WIZARD_CONFIG_SCHEMA),
+    Format("wizard state (WORK/state.json)", WizardState,
+           _HERE / "wizard" / "wizard_state.schema.json"),
+    Format("FEM result (fem.json)", FemResult, _HERE / "fem_fit" / "fem_result.schema.json"),
+    Format("rig config", RigConfig, RIG_CONFIG_SCHEMA_PATH),
+)}
+
+if __name__ == "__main__":
+    raise SystemExit(schemas_main(FORMATS))

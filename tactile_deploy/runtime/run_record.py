@@ -1,0 +1,42 @@
+"""``run.json``: what a ``tactile-deploy run`` did, written when the run ends.
+
+Counts are frames; times in ms (``wall_s`` in s); rates in frames per second; forces in N.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import Field
+
+from tactile_deploy.fileformat import StrictModel
+
+
+class RunRecord(StrictModel):
+    """The summary of one run (``tactile_deploy.runtime.run.RunSummary``) and when it ended."""
+
+    sensor: str = Field(description="Plugin name.")
+    source: str = Field(description="Frame source, as given.")
+    frames: int = Field(ge=0, description="Frames turned into meshes.")
+    bad_frames: int = Field(ge=0, description="Frames the imaging pipeline refused.")
+    ood_frames: int = Field(ge=0, description="Frames outside the model's training range.")
+    dropped_frames: int = Field(ge=0, description="Frames the source dropped.")
+    unreadable_frames: int = Field(ge=0, description="Frames the source could not read.")
+    unreadable_files: list[str] = Field(description="Files of the unreadable frames.")
+    reconnects: int = Field(ge=0, description="Camera reconnections.")
+    meshes_written: int = Field(ge=0, description="Mesh files written.")
+    meshes_skipped: int = Field(ge=0, description="Meshes not written.")
+    meshes_skipped_reasons: dict[str, int] = Field(description="Skipped meshes by reason.")
+    write_error: str | None = Field(description="The error that stopped writing, if any.")
+    previews_written: int = Field(ge=0, description="Preview images written.")
+    published: int = Field(ge=0, description="Meshes published on the stream.")
+    wall_s: float = Field(ge=0, description="Wall time of the run, s.")
+    fps: float = Field(ge=0, description="Frames per second over the run.")
+    latency_p50_ms: float | None = Field(description="Capture -> mesh latency, median, ms.")
+    latency_p95_ms: float | None = Field(description="Capture -> mesh latency, 95th percentile, ms.")
+    stage_p50_ms: dict[str, float] = Field(description="Median time of each stage, ms.")
+    last_total_force_n: float | None = Field(description="Total normal force of the last frame, N.")
+    stopped_by: str = Field(description="What ended the run.")
+    sinks: dict[str, dict[str, Any]] = Field(description="What each output sink did.")
+    source_settings: dict[str, Any] = Field(description="What the source asked for and got.")
+    finished: str = Field(description="Local date and time the run ended (ISO 8601).")
