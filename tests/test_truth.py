@@ -84,6 +84,26 @@ def test_small_strain_limit_is_the_linear_locking_free_stiffness(block_mesh):
     assert abs(K0 - lin.K).max() < 1e-13 * abs(lin.K).max()
 
 
+def test_direct_factor_solves_in_either_order(block_mesh):
+    # The tangent's direct solver: SuperLU in symmetric mode on the nested-dissection ordered
+    # matrix, and its minimum-degree fallback (no pymetis), agree with a dense solve.
+    import scipy.sparse as sp
+
+    from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order
+
+    lin = LinearGel(block_mesh.vertices, block_mesh.tets, 0.3, 0.48)
+    n = block_mesh.n_nodes
+    K = sp.csr_matrix(lin.K) + sp.identity(3 * n)  # positive definite: a spring at every node
+    b = np.random.default_rng(1).standard_normal((3 * n, 2))
+    ref = np.linalg.solve(K.toarray(), b)
+    graph = sp.csr_matrix((np.ones(lin.K.nnz), sp.csr_matrix(lin.K).nonzero()), shape=K.shape)
+    perm = nested_dissection_order(graph)
+    assert sorted(perm) == list(range(3 * n))
+    Kp = K[perm][:, perm]
+    np.testing.assert_allclose(SymmetricFactor(Kp).solve(b[perm]), ref[perm], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(SymmetricFactor(K, ordered=False).solve(b), ref, rtol=0, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------ patch tests
 def _lateral_stretch_uniaxial(lam: float, mu: float, kappa: float) -> float:
     """Free lateral stretch of the compressible neo-Hookean law under axial stretch ``lam``."""
@@ -258,8 +278,8 @@ def test_no_penetration_anywhere_on_the_surface(name, model):
     tip_depth = -sol.vertices_mm[: sol.mesh.n_plane, 2].min()
     print(f"{name}: largest penetration {pen * 1e3:.2f} um, deepest surface point "
           f"{tip_depth:.4f} mm, force {sol.force_n:.4f} N")
-    # 10 um anywhere, vertically (measured: 7.3 um at the steep rim of the 2 mm ball, where the
-    # chords of the fine mesh cut the sphere; 6.6 um next to the cone's tip, whose envelope is
+    # 10 um anywhere, vertically (measured: 5.02 um at the steep rim of the 2 mm ball, where the
+    # chords of the fine mesh cut the sphere; 5.35 um next to the cone's tip, whose envelope is
     # sampled every 25 um)
     assert pen <= 10e-3
     assert np.all(sol.normal_force_n >= 0)  # no tensile traction
@@ -267,6 +287,11 @@ def test_no_penetration_anywhere_on_the_surface(name, model):
     xy = X[:, :2] + (sol.displacements_mm[: sol.mesh.n_plane, :2] if geometric else 0.0)
     gap = -field(xy) - sol.vertices_mm[: sol.mesh.n_plane, 2]
     gap = np.where(np.isfinite(gap), gap, 1.0)
-    assert np.all(np.abs(gap[sol.in_contact & (sol.normal_force_n > 1e-6 * sol.force_n)]) < 1e-3)
+    # (a sensing node's own normal force, and a feature point's force; the points' forces reach
+    # their triangle's corners, which may lie below the indenter between its features)
+    own = sol.info["node_normal_force_n"] > 1e-6 * sol.force_n
+    assert np.all(np.abs(gap[own]) < 1e-3)
+    loaded = sol.info["point_force_n"] > 1e-6 * sol.force_n
+    assert np.all(np.abs(sol.info["point_gap_mm"][loaded]) < 1e-3)
     if name == "cone":
         assert tip_depth >= 0.78

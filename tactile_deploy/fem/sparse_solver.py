@@ -50,7 +50,14 @@ def nested_dissection_order(adjacency: sp.spmatrix) -> np.ndarray | None:
     A.setdiag(0)
     A.eliminate_zeros()
     A.sort_indices()
-    perm, _ = pymetis.nested_dissection(xadj=A.indptr, adjncy=A.indices)
+    try:
+        graph = pymetis.CSRAdjacency(A.indptr, A.indices)
+    except AttributeError:  # pymetis before 2025
+        graph = None
+    if graph is None:
+        perm, _ = pymetis.nested_dissection(xadj=A.indptr, adjncy=A.indices)
+    else:
+        perm, _ = pymetis.nested_dissection(graph)
     return np.asarray(perm, dtype=np.int64)
 
 

@@ -687,7 +687,8 @@ class _Solve:
             nt = np.linalg.norm(tau, axis=1)
             new_stick = new_n & (nt <= bound) & (bound > 0)
             f_slip = np.where((new_n & ~new_stick)[:, None],
-                              bound[:, None] * tau / np.maximum(nt, 1e-300)[:, None], 0.0)
+                              np.where(np.isfinite(bound), bound, 0.0)[:, None] * tau
+                              / np.maximum(nt, 1e-300)[:, None], 0.0)
             scale = max(float(np.abs(lam_n).sum() + np.abs(lam_p).sum()), 1e-300)
             slip_change = float(np.abs(f_slip - state["f_slip"]).max(initial=0.0)) / scale
             same = (np.array_equal(new_n, act_n) and np.array_equal(new_p, state["active_p"])
@@ -717,13 +718,15 @@ class _Solve:
         nc = len(self.cand_nodes)
         c = self.constraints(u)
         normals = self.indenter_normals(u)
-        lam_n = np.where(state["active_n"], state["lam_n"], 0.0)
+        # Active sets are final: a multiplier is > c g, with |g| at round-off (clipped at 0).
+        lam_n = np.where(state["active_n"], np.maximum(state["lam_n"], 0.0), 0.0)
         forces = np.zeros((n_plane, 3))
         nodes = self.cand_nodes
         forces[nodes] = lam_n[:, None] * normals[nodes] + state["f_node"]
         fn = np.zeros(n_plane)
         fn[nodes] = lam_n
-        lam_p = state["lam_p"]
+        node_fn = fn.copy()
+        lam_p = np.maximum(state["lam_p"], 0.0)
         if len(lam_p):
             fp = lam_p[:, None, None] * c.weights[nc:]  # (q, 3 corners, 3)
             np.add.at(forces, c.nodes[nc:].ravel(), fp.reshape(-1, 3))
@@ -744,7 +747,11 @@ class _Solve:
             info={"history": history, "n_nodes": self.mesh.n_nodes,
                   "factorizations": self.factorizations,
                   "newton_steps": self.newton_steps,
-                  "n_constraints": len(c.gap), "h_fine_mm": self.h_fine},
+                  "n_constraints": len(c.gap), "h_fine_mm": self.h_fine,
+                  # complementarity, per constraint: a sensing node's own normal force (N) and
+                  # the feature points' gaps (mm) and forces (N)
+                  "node_normal_force_n": node_fn, "point_gap_mm": c.gap[nc:].copy(),
+                  "point_force_n": np.asarray(lam_p, float).copy()},
         )
 
 
