@@ -19,6 +19,7 @@ BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
 BENCHMARKS = {
     "sim": "bench_sim.py",
     "sim-gpu": "bench_sim_gpu.py",
+    "sim-resolved": "bench_sim_resolved.py",
     "shading": "bench_shading.py",
     "optics": "bench_optics.py",
     "predictor": "bench_predictor.py",

@@ -104,8 +104,8 @@ def _node_normals(mesh: PadMesh, supports: Supports) -> dict[int, list[np.ndarra
             normals[int(i)] = [np.eye(3)[0], np.eye(3)[1], ez]
     if supports.side == "rollers":
         for i in mesh.side_nodes:
-            n = _side_normal(mesh, v[i])
-            normals.setdefault(int(i), []).append(n)
+            for n in _side_normals(mesh, v[i]):
+                normals.setdefault(int(i), []).append(n)
     if supports.backplate == "rollers":
         # Remove the rigid-body modes left by sliding supports with pins compatible with a
         # uniform expansion: the centre node in x and y (in-plane translation, unless side
@@ -123,13 +123,19 @@ def _node_normals(mesh: PadMesh, supports: Supports) -> dict[int, list[np.ndarra
     return normals
 
 
-def _side_normal(mesh: PadMesh, p: np.ndarray) -> np.ndarray:
+def _side_normals(mesh: PadMesh, p: np.ndarray) -> list[np.ndarray]:
+    """Outward normals of the side walls through point ``p`` (two at a box's vertical edge)."""
     g = mesh.geometry
     if g.shape == "disc":
         n = np.array([p[0], p[1], 0.0])
-        return n / np.linalg.norm(n)
-    on_x = abs(abs(p[0]) - 0.5 * g.width_mm) < 1e-9 * g.half_extent_mm
-    return np.array([np.sign(p[0]), 0.0, 0.0]) if on_x else np.array([0.0, np.sign(p[1]), 0.0])
+        return [n / np.linalg.norm(n)]
+    tol = 1e-9 * g.half_extent_mm
+    out = []
+    if abs(abs(p[0]) - 0.5 * g.width_mm) < tol:
+        out.append(np.array([np.sign(p[0]), 0.0, 0.0]))
+    if abs(abs(p[1]) - 0.5 * g.length_mm) < tol:
+        out.append(np.array([0.0, np.sign(p[1]), 0.0]))
+    return out
 
 
 def _free_basis(normals: list[np.ndarray]) -> np.ndarray:
