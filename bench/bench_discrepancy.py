@@ -4,6 +4,8 @@ false-positive rate, parameter recovery, and the runtime of a 200-contact run.
     python bench/bench_discrepancy.py [--sensor gelslim1] [--seeds 5] [--contacts 40]
         [--null-seeds 20] [--runtime-contacts 200] [--frames] [--small] [--no-write]
     (or: tactile-deploy bench discrepancy)
+    python bench/bench_discrepancy.py --independent [...]: effects made outside the product
+    (bench/bench_discrepancy_independent.py)
 
 Measured data come from the shipped virtual sensor (full 5,380-node pad) with effects switched
 on that the workflow is not told (:mod:`calibration.discrepancy.synthetic`): per seed a new set
@@ -308,6 +310,11 @@ Two effects at once: {'; '.join(pairs) or 'not run'}.
 
 
 def main(argv=None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--independent" in argv:  # effects made outside the product: its own module
+        from bench.bench_discrepancy_independent import main as independent
+
+        return independent(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sensor", default="gelslim1")
     parser.add_argument("--seeds", type=int, default=5)

@@ -191,16 +191,22 @@ def force_check(plugin, predictor, estimator, n: int = 12, seed: int = 7) -> dic
                            depth_mm=float(rng.uniform(0.3, 0.9)))
         out = sensor.press(ind, pose, np.random.default_rng([seed, i]))
         pred = predictor.predict_frame(out.frame)
+        every_node = estimator.with_contact_fraction(None)  # the exact inverse of the FEM
         f_pred = estimator.estimate(pred.vertices_mm, pressure=False).total_normal_force_n
-        f_mesh = estimator.estimate(out.vertices_mm.astype(np.float64), pressure=False).total_normal_force_n
-        rows.append((out.force_n, f_pred, f_mesh))
+        f_all = every_node.estimate(pred.vertices_mm, pressure=False).total_normal_force_n
+        f_mesh = every_node.estimate(out.vertices_mm.astype(np.float64), pressure=False).total_normal_force_n
+        f_mesh_patch = estimator.estimate(out.vertices_mm.astype(np.float64), pressure=False).total_normal_force_n
+        rows.append((out.force_n, f_pred, f_mesh, f_all, f_mesh_patch))
     a = np.array(rows)
-    rel_pred = np.abs(a[:, 1] - a[:, 0]) / a[:, 0]
-    rel_mesh = np.abs(a[:, 2] - a[:, 0]) / a[:, 0]
+    rel = np.abs(a[:, 1:] - a[:, :1]) / a[:, :1]
     return {"n": n, "force_range_n": [float(a[:, 0].min()), float(a[:, 0].max())],
-            "predicted_rel_error_median": float(np.median(rel_pred)),
-            "predicted_rel_error_max": float(rel_pred.max()),
-            "fem_mesh_rel_error_max": float(rel_mesh.max())}
+            "contact_fraction": estimator.contact_fraction,
+            "predicted_rel_error_median": float(np.median(rel[:, 0])),
+            "predicted_rel_error_max": float(rel[:, 0].max()),
+            "predicted_every_node_rel_error_median": float(np.median(rel[:, 2])),
+            "predicted_every_node_rel_error_max": float(rel[:, 2].max()),
+            "fem_mesh_rel_error_max": float(rel[:, 1].max()),
+            "fem_mesh_patch_rel_error_max": float(rel[:, 3].max())}
 
 
 def run(plugin_name: str, frames: int, memory_frames: int, torch_bundle: Path | None = None) -> dict:
@@ -376,10 +382,14 @@ def markdown(r: dict) -> str:
             "",
             f"Forces, {fc['n']} new virtual-sensor presses ({fc['force_range_n'][0]:.2f}-"
             f"{fc['force_range_n'][1]:.2f} N; balls of 4 and 6 mm, a 3 mm punch): total normal "
-            f"force from the **predicted** mesh vs the sensor's FEM force: median error "
-            f"{100 * fc['predicted_rel_error_median']:.0f} %, worst "
-            f"{100 * fc['predicted_rel_error_max']:.0f} %; from the sensor's own FEM mesh (the "
-            f"inverse FEM alone): worst {100 * fc['fem_mesh_rel_error_max']:.1g} %.",
+            f"force from the **predicted** mesh vs the sensor's FEM force, summed over the contact patch "
+            f"(nodes above {fc['contact_fraction']:g} of the largest nodal force, as `run` reports it): median "
+            f"error {100 * fc['predicted_rel_error_median']:.1f} %, worst {100 * fc['predicted_rel_error_max']:.0f} %"
+            f" (target: median <= 5 %); summed over every node: median "
+            f"{100 * fc['predicted_every_node_rel_error_median']:.0f} %, worst "
+            f"{100 * fc['predicted_every_node_rel_error_max']:.0f} %; from the sensor's own FEM mesh (the inverse "
+            f"FEM alone): worst {100 * fc['fem_mesh_rel_error_max']:.1g} % over every node, "
+            f"{100 * fc['fem_mesh_patch_rel_error_max']:.1g} % over the contact patch.",
         ]
     m = r["memory"]
     drift = m["rss_end_mb"] - m["rss_start_mb"]

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from calibration.discrepancy.apply import SensorModelHistory
+from calibration.discrepancy.collect import CollectionLog
+from calibration.discrepancy.verdict import DiscrepancyVerdict
 from calibration.fem_fit.result import FemResult
 from calibration.rig.config import RIG_CONFIG_SCHEMA_PATH, RigConfig
 from calibration.wizard.config import SCHEMA_PATH as WIZARD_CONFIG_SCHEMA
@@ -21,6 +24,12 @@ FORMATS = {f.name: f for f in (
            _HERE / "wizard" / "wizard_state.schema.json"),
     Format("FEM result (fem.json)", FemResult, _HERE / "fem_fit" / "fem_result.schema.json"),
     Format("rig config", RigConfig, RIG_CONFIG_SCHEMA_PATH),
+    Format("discrepancy verdict (REPORT/verdict.json)", DiscrepancyVerdict,
+           _HERE / "discrepancy" / "verdict.schema.json"),
+    Format("rig collection log (rig_log in a collected .npz)", CollectionLog,
+           _HERE / "discrepancy" / "collection_log.schema.json"),
+    Format("sensor model history (MODEL.versions/history.json)", SensorModelHistory,
+           _HERE / "discrepancy" / "sensor_model_history.schema.json"),
 )}
 
 if __name__ == "__main__":

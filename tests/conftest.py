@@ -53,6 +53,20 @@ def pad_sim(pad):
     return sim
 
 
+@pytest.fixture(scope="session")
+def small_sim():
+    """A small pad (r 10 mm, 1,735 nodes), nu = 0.48, frictionless: fast discrepancy tests."""
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.simulator import ContactSimulator
+    from tactile_deploy.pad.geometry import PadGeometry
+    from tactile_deploy.pad.mesh import build_pad_mesh
+
+    mesh = build_pad_mesh(PadGeometry(name="small", radius_mm=10.0, edge_mm=1.0, n_layers=4))
+    sim = ContactSimulator(mesh, Material(nu=0.48))
+    sim.prepare()
+    return sim
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """One torch thread for a module: on a shared 2-core machine two OpenMP threads stall behind

@@ -102,7 +102,9 @@ def test_the_gate_judges_the_written_model_against_the_start_and_the_active_one(
     # the fp32 figure of the report is the step's; the depth camera gives the step's figure
     assert evaluate_model(FAMILY_FP32, pad, d, t, w).rmse_mm == pytest.approx(evaluate(step, d, t, w).rmse_mm, abs=1e-4)
     assert report["heldout_rmse_before_fp32_mm"] == pytest.approx(evaluate(step, d, t, w).rmse_mm, abs=1e-7)
-    assert abs(report["heldout_rmse_before_fp32_mm"] - report["heldout_rmse_before_mm"]) > 1e-4  # int8 differs
+    # int8 differs (the shipped graph quantises only its lateral lift, which the rendered depth
+    # barely sees; figures of one model agree to 1e-9, see above)
+    assert abs(report["heldout_rmse_before_fp32_mm"] - report["heldout_rmse_before_mm"]) > 1e-7
     out = " ".join(res.output.split())
     assert f"{family.rmse_mm * 1e3:.2f} um (family model) -> {adapted.rmse_mm * 1e3:.2f} um" in out
     assert f"worst {report['int8_vs_fp32_max_abs_diff_mm'] * 1e3:.1f} um" in out

@@ -45,19 +45,6 @@ TOLERANCE = {"offset_mm": 0.002, "scale": 0.003, "dx_mm": 0.03, "dy_mm": 0.03,
              "strength": 0.05, "delta_nu": 0.002}
 
 
-@pytest.fixture(scope="module")
-def small_sim():
-    from tactile_deploy.fem.material import Material
-    from tactile_deploy.fem.simulator import ContactSimulator
-    from tactile_deploy.pad.geometry import PadGeometry
-    from tactile_deploy.pad.mesh import build_pad_mesh
-
-    mesh = build_pad_mesh(PadGeometry(name="small", radius_mm=10.0, edge_mm=1.0, n_layers=4))
-    sim = ContactSimulator(mesh, Material(nu=0.48))
-    sim.prepare()
-    return sim
-
-
 def make_sensor(sim, effects=()) -> VirtualSensor:
     cfg = VirtualSensorConfig(name="small", family="gelslim", optics=OPTICS,
                               effects=tuple(effects))
@@ -167,8 +154,8 @@ def test_look_alikes_are_reported_as_ambiguous_with_the_experiment_that_separate
 
 
 # ------------------------------------------------------------------------------ pieces
-def test_library_has_ten_registered_candidates_null_at_their_centre():
-    assert len(CANDIDATES) >= 10 and len({c.name for c in CANDIDATES}) == len(CANDIDATES)
+def test_library_has_registered_candidates_null_at_their_centre():
+    assert len(CANDIDATES) >= 14 and len({c.name for c in CANDIDATES}) == len(CANDIDATES)
     for c in CANDIDATES:
         assert c.effect in REGISTRY
         null = effect_class(c.effect).Params().model_dump()
@@ -203,32 +190,35 @@ def test_noise_is_estimated_under_smooth_structure():
     assert 0 < est.se_mm < 0.0002
 
 
-def test_view_warp_is_identity_for_the_same_camera_and_stretches_for_pixel_scale(small_sim):
+def test_view_warp_is_identity_at_the_null_value_and_stretches_for_pixel_scale(small_sim):
     from calibration.discrepancy.reproduce import ContactReproducer
-    from calibration.discrepancy.view_warp import ViewWarp
+    from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
+    from tactile_deploy.sensors.depth_view import effect_view_warp
+    from tactile_deploy.sensors.effects import get_effect
 
     sensor = make_sensor(small_sim)
     repro = ContactReproducer(sensor)
     cam = sensor.optics.camera
-    same = ViewWarp(cam, cam, repro.camera)
-    assert same.max_shift_mm < 1e-9 and np.allclose(same.gain, 1.0)
-    stretched = make_sensor(small_sim, [EffectSpec(name="pixel_scale",
-                                                   params={"anisotropy": 0.05})])
-    warp = ViewWarp(cam, stretched.optics.camera, repro.camera)
+    assert effect_view_warp(get_effect("pixel_scale"), cam, repro.camera) is None
+    warp = effect_view_warp(get_effect("pixel_scale", {"anisotropy": 0.05}), cam, repro.camera)
     # a pad point seen at image row offset v is reported at 1 / (1 + a) of its distance along
     # the rows: q - c = (1 + a) (p - c) along the image's v direction
-    from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
-
     cy = cam.intrinsics.cy_px
     row_dir = pixels_to_sensor_mm(np.array([[cam.intrinsics.cx_px, cy + 10.0]]), cam) - \
         pixels_to_sensor_mm(np.array([[cam.intrinsics.cx_px, cy]]), cam)
     assert abs(row_dir[0, 1]) > abs(row_dir[0, 0])  # rows run along sensor y here
     depth, _ = repro.depth_map("sphere_r4", random_contacts(1, 5, radius_mm=0.1)[0][1])
     seen = warp(depth)
+    # an integrating pipeline (exponent 1) reports depths over the stretched grid
     assert seen.max() == pytest.approx(depth.max() / np.sqrt(1.05), rel=0.03)
     cols = (depth > 0.2 * depth.max()).any(axis=1).sum(), (seen > 0.2 * seen.max()).any(
         axis=1).sum()
     assert cols[1] < cols[0]  # squeezed along the rows
+    # a resampled map (exponent 0) keeps its values
+    resampled = effect_view_warp(get_effect("pixel_scale", {"anisotropy": 0.05,
+                                                            "depth_gain_exponent": 0.0}),
+                                 cam, repro.camera)
+    assert resampled(depth).max() == pytest.approx(depth.max(), rel=0.01)
 
 
 def test_measured_data_round_trip_and_errors(setup, tmp_path):

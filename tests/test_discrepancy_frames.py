@@ -64,7 +64,14 @@ def test_effect_hidden_in_frames_is_named_and_recovered(frames_setup, effect, pa
     result = _run(frames_setup, [EffectSpec(name=effect, params=params)], 12)
     v = result.verdict
     assert v.verdict == "effect" and v.effect == effect, v.message
-    assert v.parameters[key] == pytest.approx(params[key], abs=tol)
+    if effect == "pixel_scale":  # one stretch, whichever way the chart writes it
+        from tactile_deploy.sensors.effects import get_effect
+
+        fitted = get_effect(effect, v.parameters).stretch_px(0.0, 0.0)
+        np.testing.assert_allclose(fitted, get_effect(effect, params).stretch_px(0.0, 0.0),
+                                   atol=tol)
+    else:
+        assert v.parameters[key] == pytest.approx(params[key], abs=tol)
     assert v.gap_after_mm <= 0.5 * v.gap_before_mm
 
 

@@ -74,7 +74,9 @@ NON_NULL = {
     "saturation": {"exposure_factor": 1.4}, "led_drift": {"sigma_rel": 0.05},
     "depth_scale": {"scale": 0.03}, "position_offset": {"dx_mm": 0.2},
     "rotation_offset": {"dtheta_deg": 3.0}, "poisson_drift": {"delta_nu": -0.02},
-    "compression_set": {"depth_mm": 0.05},
+    "compression_set": {"depth_mm": 0.05}, "gain_gradient": {"gain_per_mm_x": 0.01},
+    "blur": {"sigma_mm": 0.2}, "shading_saturation": {"inverse_max_slope": 2.0},
+    "friction": {"mu": 0.5},
 }
 
 

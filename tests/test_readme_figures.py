@@ -69,21 +69,62 @@ def virtual_target_line(which: str) -> dict:
 
 
 def test_predictor_headline_is_the_evaluation_and_the_model_card():
-    rmse, n = readme(r"shipped int8 graph: ([0-9.]+) mm vertex RMSE on (\d+) fresh contacts")
+    """The README's contact-patch headline, the physics lift beside it, is the committed
+    evaluation report's, and the shipped model's card carries the same report's table."""
+    import hashlib
+
+    (n, patch, lift_patch, deep, lift_deep, all_nodes, lift_all, unseen, lift_unseen) = readme(
+        r"on (\d+) fresh frictionless contacts: the shipped graph's contact patch is ([0-9.]+) um RMS against "
+        r"([0-9.]+) um for the physics lift, its deepest node ([-+0-9.]+) % against ([-+0-9.]+) % \(all nodes: "
+        r"([0-9.]+) against ([0-9.]+) um\); on the shared STL shapes it never saw ([0-9.]+) against ([0-9.]+) um")
     evaluation = json.loads((ROOT / "docs" / "results" / "evaluation.json").read_text())
     card = json.loads((ROOT / "exported" / "gelslim_mesh.json").read_text())
-    learned = evaluation["domains"]["primitives"]["learned"]
-    assert rounded(learned["vertex_rmse_mm"], rmse) == rmse
-    on_card = card["heldout_accuracy"]["disjoint_from_int8_calibration"]["seed2024_evaluation"]
-    assert rounded(on_card["vertex_rmse_mm"], rmse) == rmse
-    assert evaluation["domains"]["primitives"]["n_samples"] == int(n) == on_card["n_samples"]
+    assert evaluation["models"]["shipped"] == "exported/gelslim_mesh.onnx"
+    shipped_bytes = (ROOT / evaluation["models"]["shipped"]).read_bytes()
+    assert hashlib.sha256(shipped_bytes).hexdigest() == card["files"]["onnx_sha256"], "the card is of another graph"
+    prim, shapes = evaluation["domains"]["primitives"], evaluation["domains"]["unseen_shapes"]
+    assert prim["n_samples"] == int(n)
+    model, lift = prim["methods"]["shipped"], prim["methods"]["physics lift"]
+    assert rounded(model["contact_patch_rmse_um"], patch) == patch
+    assert rounded(lift["contact_patch_rmse_um"], lift_patch) == lift_patch
+    assert rounded(model["deepest_node_error_pct"]["mean"], deep) == deep.lstrip("+")
+    assert rounded(lift["deepest_node_error_pct"]["mean"], lift_deep) == lift_deep.lstrip("+")
+    assert rounded(model["all_node_rmse_um"], all_nodes) == all_nodes
+    assert rounded(lift["all_node_rmse_um"], lift_all) == lift_all
+    assert rounded(shapes["methods"]["shipped"]["contact_patch_rmse_um"], unseen) == unseen
+    assert rounded(shapes["methods"]["physics lift"]["contact_patch_rmse_um"], lift_unseen) == lift_unseen
+    assert card["evaluation"]["report"] == "docs/results/evaluation.json"
+    assert f"| **{patch}** / {lift_patch} | {deep} / {lift_deep} | {all_nodes} / {lift_all} |" in card["evaluation"]["table"]
+
+
+def test_predictor_limits_are_the_evaluation():
+    stick, stick_lift, strain, strain_lift = readme(
+        r"is ([0-9.]+) um RMS off on the contact patch under sticking contact \(the physics lift: ([0-9.]+) um\) and "
+        r"([0-9.]+) um under large strain \(lift: ([0-9.]+) um\)")
+    domains = json.loads((ROOT / "docs" / "results" / "evaluation.json").read_text())["domains"]
+    for dom, model, lift in (("stick", stick, stick_lift), ("large_strain", strain, strain_lift)):
+        methods = domains[dom]["methods"]
+        assert rounded(methods["shipped"]["contact_patch_rmse_um"], model) == model
+        assert rounded(methods["physics lift"]["contact_patch_rmse_um"], lift) == lift
 
 
 def test_predictor_latency_is_the_benchmark():
     (ms,) = readme(r"~([0-9.]+) ms on one CPU thread")
-    shipped = table_row(section("predictor"), "lean-int8-fastood")
-    p50_ms = float(shipped[2])  # decoder, precision, then p50 ms (batch 1)
+    shipped = table_row(section("predictor"), "**hybrid-int8-fastood (shipped)**")
+    p50_ms = float(shipped[1])  # precision, then p50 ms (batch 1)
     assert rounded(p50_ms, ms) == ms, f"README ~{ms} ms, benchmark p50 {p50_ms} ms"
+
+
+def test_real_ball_adaptation_figures_are_the_benchmark():
+    lf0, lf1, ball0, ball1, cap0, cap1, lift, lift_cap = readme(
+        r"the label-free error falls \(([0-9.]+) -> ([0-9.]+) um\) while the sensing surface's error against the "
+        r"ball grows from ([0-9.]+) to ([0-9.]+) um RMS \(contact depth ([-+0-9.]+) % -> ([-+0-9.]+) %; the physics "
+        r"lift: ([0-9.]+) um, ([-+0-9.]+) %\)")
+    text = section("predictor-real")
+    before, after, physics = (table_row(text, name) for name in ("shipped model", "adapted (fp32)", "physics lift"))
+    assert (before[0], after[0], physics[0]) == (ball0, ball1, lift)
+    assert (before[1].split(" /")[0], after[1].split(" /")[0], physics[1].split(" /")[0]) == (cap0, cap1, lift_cap)
+    assert (before[2], after[2]) == (lf0, lf1)
 
 
 def test_learned_readout_depth_errors_are_the_benchmark():

@@ -171,6 +171,33 @@ def test_forces_from_simulated_meshes_match_the_simulator(pad_sim):
         assert np.allclose(batch.total_normal_force_n, [res.force_n, 0.0], atol=1e-9)
 
 
+def test_contact_patch_total_ignores_errors_off_the_contact(pad_sim):
+    """The runtime's total (the contact patch: nodes above CONTACT_FRACTION of the largest nodal
+    force) is the simulator's force to ~2 % on its own mesh, and stays so when the surface away
+    from the contact carries a 2 um error that moves the every-node total by far more."""
+    from tactile_deploy.runtime.forces import CONTACT_FRACTION, ForceEstimator, SurfaceStiffness
+
+    mesh = pad_sim.mesh
+    stiff = SurfaceStiffness.from_simulator(pad_sim)
+    xy = mesh.vertices[mesh.sensing_nodes, :2]
+    est = ForceEstimator(stiff, pad_sim.material.E_mpa, mesh.vertices, mesh.sensing_nodal_areas_mm2(),
+                         contact_fraction=CONTACT_FRACTION)
+    exact = est.with_contact_fraction(None)
+    r2 = ((xy - (1.0, -2.0)) ** 2).sum(1)
+    res = pad_sim.solve_intrusion(0.7 - r2 / (2 * 3.0))
+    f = est.estimate(res.vertices_mm, pressure=False)
+    assert abs(f.total_normal_force_n - res.force_n) < 0.02 * res.force_n
+    assert set(np.flatnonzero(f.contact_mask)) <= set(np.flatnonzero(res.contact_mask))
+    noisy = res.vertices_mm.copy()
+    far = np.sqrt(r2) > 6.0
+    noisy[mesh.sensing_nodes[far], 2] -= 0.002 * np.sign(xy[far, 0])  # +-2 um, by side
+    noisy[mesh.sensing_nodes[far & (xy[:, 1] > 0)], 2] -= 0.002      # and 2 um deeper on one half
+    all_nodes = exact.estimate(noisy, pressure=False).total_normal_force_n
+    patch = est.estimate(noisy, pressure=False).total_normal_force_n
+    assert abs(all_nodes - res.force_n) > 0.2 * res.force_n
+    assert abs(patch - res.force_n) < 0.03 * res.force_n
+
+
 def test_stiffness_path_without_the_simulator_cache(pad_sim):
     """The runtime's own compliance solve (no Green's functions of the volume) equals the
     simulator's compliance on a patch of nodes."""

@@ -25,7 +25,8 @@ def run(*args):
 
 def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
     out = tmp_path / "one.npz"
-    result = run("simulate", "--indenter", "flat_punch", "--x", 2, "--y", -1, "--depth", 0.5, "--out", out)
+    result = run("simulate", "--indenter", "flat_punch", "--x", 2, "--y", -1, "--depth", 0.5,
+                 "--model", "linear", "--out", out)
     assert result.exit_code == 0, result.output
     with np.load(out) as d:
         assert d["depth"].shape == (128, 128) and d["depth"].dtype == np.float32
@@ -44,6 +45,8 @@ def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
         y = 17.5 - (rows.mean() + 0.5) * 35 / 128
         assert x == pytest.approx(2.0, abs=0.3) and y == pytest.approx(-1.0, abs=0.3)
         assert np.abs(depth[:20]).max() < 0.01 * 0.5  # 13 mm away the gel has moved < 1 % of d
+        assert meta["model"] == "linear" and meta["max_penetration_mm"] < 1e-5
+        assert d["stick_mask"].shape == d["contact_mask"].shape and not d["stick_mask"].any()
     again = run("simulate", "--indenter", "flat_punch", "--depth", 0.5, "--out", out)
     assert again.exit_code != 0 and "--overwrite" in " ".join(again.output.split())
 
@@ -174,3 +177,18 @@ def test_float16_storage_is_float32_rounded_to_half_precision(tmp_path, pad_sim)
         np.testing.assert_array_equal(a["force_n"], b["force_n"])
     bad = run(*common, "--storage", "float8", "--out", tmp_path / "bad")
     assert bad.exit_code != 0 and "storage" in bad.output
+
+
+def test_mesh_file_indenters_are_recorded_so_they_can_be_simulated_again(shared_data):
+    import hashlib
+
+    from tactile_deploy.simulation.contact import indenter_record
+
+    path = sorted((shared_data / "indenters").glob("*.stl"))[0]
+    ind = get_indenter(path, pressing_face="top")
+    rec = indenter_record(ind)
+    assert rec["indenter"] == str(path.resolve()) and rec["indenter_name"] == path.stem
+    assert rec["indenter_sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    again = get_indenter(rec["indenter"], pressing_face=rec["pressing_face"])
+    assert again.content_hash == ind.content_hash
+    assert indenter_record(get_indenter("sphere_r4")) == {"indenter": "sphere_r4", "indenter_kind": "primitive"}

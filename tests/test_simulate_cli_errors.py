@@ -154,7 +154,8 @@ def test_outputs_of_the_wrong_kind_are_refused_before_any_work(tmp_path):
 
 def test_single_contact_npz_describes_itself(tmp_path, pad_sim):
     out = tmp_path / "one.npz"
-    result = run("simulate", "--indenter", "flat_punch", "--theta", 10, "--depth", 0.5, "--out", out)
+    result = run("simulate", "--indenter", "flat_punch", "--theta", 10, "--depth", 0.5, "--model",
+                 "linear", "--out", out)
     assert result.exit_code == 0, result.output
     with np.load(out) as d:
         assert d["depth"].dtype == np.float32 and d["depth_detail"].dtype == np.float32
@@ -164,7 +165,8 @@ def test_single_contact_npz_describes_itself(tmp_path, pad_sim):
         assert units[key] == "mm", key
     assert units["pose.theta_deg"] == "deg" and units["material.E_mpa"] == "MPa"
     assert units["force_n"] == "N" and units["pressure_kpa"] == "kPa"
-    assert "deformed pad mesh" in meta["depth"] and "intrusion" in meta["depth_detail"]
+    assert "resolved surface" in meta["depth"] and "intrusion" in meta["depth_detail"]
+    assert meta["model"] == "linear" and meta["truth_mesh"]["fine_spacing_mm"] <= 0.27
     image = meta["image"]
     assert image["shape_px"] == [128, 128] and image["half_extent_mm"] == 17.5
     assert image["pixel_pitch_mm"] == pytest.approx(35 / 128)

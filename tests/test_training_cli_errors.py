@@ -190,7 +190,7 @@ def test_int8_calibration_never_falls_back_to_heldout_maps(tmp_path):
     from training.export import calibration_maps
 
     cfg = TrainConfig.model_validate({"run_dir": "x", "data": {"dataset_dir": str(tmp_path / "moved")}})
-    with pytest.raises(UsageError, match=r"data.dataset_dir .*moved.*cannot be read.*--variant lean-fastood"):
+    with pytest.raises(UsageError, match=r"data.dataset_dir .*moved.*cannot be read.*--variant hybrid-fastood\)"):
         calibration_maps(cfg)
     # a held-out file simulated with the seed the calibration would take: another seed is used
     cfg = TrainConfig.model_validate({"run_dir": "x", "data": {"synthetic": SYNTHETIC}})
@@ -354,7 +354,8 @@ def test_export_prints_both_graphs_and_replaces_the_set_only_whole(tiny_run, tmp
     monkeypatch.setattr(training.export, "calibration_maps",
                         lambda cfg, n=256, heldout_seed=None: (calib, {"source": "test maps", "n_maps": len(calib)}))
     out = tmp_path / "m.onnx"
-    assert main(["export", "--run", str(run), "--out", str(out)]) == 0
+    # the tiny run has the latent decoders only: their int8 variant (the default needs the surface decoder)
+    assert main(["export", "--run", str(run), "--out", str(out), "--variant", "lean-int8-fastood"]) == 0
     text = capsys.readouterr().out
     assert "parity of the fp32 graph m_fp32.onnx vs torch" in text
     assert "shipped int8 graph m.onnx vs m_fp32.onnx: max |difference|" in text

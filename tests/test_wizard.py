@@ -187,7 +187,7 @@ def test_redo_resume_and_config_checks(wizard_copy):
                   "--config", cfg, "--out", out, "--yes", "--redo", "fem")
     assert res.exit_code == 0, res.output
     after = work.load()
-    assert "step 5/6" in res.output and "step 4/6" not in res.output
+    assert "step 5/7" in res.output and "step 4/7" not in res.output
     for step in ("reference", "camera", "presses", "shading"):
         assert after.steps[step] == before.steps[step]
     assert (out / "plugin.json").is_file()
@@ -248,7 +248,8 @@ def test_interactive_wizard_through_a_pty(tmp_path):
 
     cfg = tmp_path / "cfg.json"       # fewer frames and presses: the dialogue is under test
     cfg.write_text(json.dumps({**CONFIG, "reference": {"n_frames": 3},
-                               "presses": {"n_presses": 6}, "shading": {"folds": 2}}))
+                               "presses": {"n_presses": 6}, "shading": {"folds": 2},
+                               "discrepancy": {"n_presses": 4}}))
     out = tmp_path / "unit7"
     cmd = [sys.executable, "-m", "tactile_deploy.cli.main", "calibrate", "--sensor", "unit7",
            "--source", f"virtual:{SENSOR}", "--rig", "simulated", "--config", str(cfg),
@@ -305,17 +306,20 @@ def test_interactive_wizard_through_a_pty(tmp_path):
     c.send("1\r")
     next_prompt(c, "plugin")
     c.send("1\r")
+    next_prompt(c, "discrepancy")
+    c.send("1\r")
     c.expect("Done.")
     c.expect(pexpect.EOF)
     c.close()
     assert c.exitstatus == 0
     transcript = log.getvalue()
-    assert transcript.count("step 2/6: camera mapping") == 2       # run, then redone
-    assert transcript.count("step 1/6: reference") == 1             # not rerun on resume
+    assert transcript.count("step 2/7: camera mapping") == 2       # run, then redone
+    assert transcript.count("step 1/7: reference") == 1             # not rerun on resume
     report = validate_plugin(out)
     assert report.ok, report.problems
     state = WorkFolder(tmp_path / "unit7.calibration").load()
-    assert list(state.steps) == ["reference", "camera", "presses", "shading", "fem", "plugin"]
+    assert list(state.steps) == ["reference", "camera", "presses", "shading", "fem", "plugin",
+                                 "discrepancy"]
     assert any("circle set by hand" in n for n in state.steps["presses"].notes)
 
 
@@ -363,7 +367,8 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     mm_per_px, crop = sensor.optics.camera.mm_per_px_x, (160, 120, 320, 240)
     cfg = {**CONFIG, "reference": {"n_frames": 3}, "presses": {"n_presses": 8},
            "shading": {"folds": 0}, "fem": {"enabled": False},
-           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)}}
+           "camera": {"target": "crop", "mm_per_px": mm_per_px, "crop": list(crop)},
+           "discrepancy": {"n_presses": 0}}   # the clip holds no frames for more presses
     (tmp_path / "cfg.json").write_text(json.dumps(cfg))
     grid = crop_camera_mapping(640, 480, mm_per_px, crop).grid
     plan = plan_presses(grid, 3.0, 8, (0.3, 0.9), 0)
@@ -492,3 +497,33 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
           "new presses near the contact: mean", e_tuned["near"].mean(), "worst", e_tuned["near"].max())
     assert fit_tuned < 0.7 * fit_design                        # it learned its targets
     assert e_tuned["near"].mean() <= 20.0                     # the calibration's depth target
+
+
+def test_wizard_writes_the_units_sensor_model_and_discrepancy_presses(wizard_run, sensor):
+    """The last step: the unit's model in the plugin folder (its camera, E and nu) and rig
+    presses in the measured format; ``discrepancy --sensor <plugin>`` runs on them."""
+    from calibration.discrepancy.collect import load_collection_log
+    from calibration.discrepancy.measured import load_measured
+    from tactile_deploy.runtime.plugins import SensorPlugin
+    from tactile_deploy.sensors.config import load_sensor_config
+
+    folder, out, _, _ = wizard_run
+    model = load_sensor_config(out / "sensor_model.json")
+    plugin = SensorPlugin.load(out)
+    assert model.optics.camera == plugin.manifest.camera
+    assert model.material.E_mpa == pytest.approx(plugin.manifest.material.E_mpa)
+    assert model.material.nu == pytest.approx(plugin.manifest.material.nu)
+    presses = folder / "acme.calibration" / "discrepancy_presses.npz"
+    data = load_measured(presses)
+    log = load_collection_log(presses)
+    assert data.n == len(log.recorded) == 16 and data.frames is not None
+    assert data.depth_mm is not None and data.depth_mm.max() > 0.2
+    assert all(data.known(i) for i in range(data.n)) and np.all(data.force_n > 0)
+    assert log.noise_mm is not None and 0 < log.noise_mm < 0.02
+    res = CliRunner().invoke(app, ["discrepancy", "--sensor", str(out), "--measured",
+                                   str(presses), "--candidates", "zero_offset,dome,tilt",
+                                   "--null-replicates", "40", "--folds", "4", "--json"])
+    assert res.exit_code == 0, res.output
+    verdict = json.loads(res.stdout)
+    print(verdict["message"])
+    assert verdict["sensor"] == "acme" and verdict["n_samples"] == 16

@@ -39,6 +39,21 @@ def _check_output_json(path: str, option: str) -> Path:
         raise UsageError(str(e)) from None
 
 
+def _card_of(card_path: Path, model: Path) -> dict:
+    """The model card at ``card_path`` if it describes ``model`` (same sha256), else UsageError."""
+    import hashlib
+    import json
+
+    if not card_path.is_file():
+        raise UsageError(f"--card {card_path}: no such file; give the model card written by python -m training export")
+    card = json.loads(card_path.read_text())
+    sha = hashlib.sha256(model.read_bytes()).hexdigest()
+    if card.get("files", {}).get("onnx_sha256") != sha:
+        raise UsageError(f"--card {card_path} describes another graph than {model} (sha256 differs): give the card "
+                         "exported with the first --model")
+    return card
+
+
 def _run_folder(path: str, option: str = "--run") -> Path:
     run = Path(path)
     if not run.is_dir():
@@ -59,6 +74,9 @@ def _main(argv: list[str]) -> int:
     p_train = sub.add_parser("train", help="pre-train both VAEs, then the latent projection")
     p_train.add_argument("--config", required=True, help="TrainConfig JSON file")
     p_train.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N, auto)")
+    p_train.add_argument("--run-dir", help="override the config's run_dir")
+    p_train.add_argument("--time-budget", action="append", default=[], metavar="STAGE=SECONDS",
+                         help="override a stage's time_budget_s (repeatable), e.g. surface=120")
     p_export = sub.add_parser("export", help="export a trained run to ONNX with its model card")
     p_export.add_argument("--run", required=True, help="run folder holding model.pt and heldout.npz")
     p_export.add_argument(
@@ -67,13 +85,21 @@ def _main(argv: list[str]) -> int:
         "<stem>.json and <stem>.md and, for int8 variants, the fp32 graph <stem>_fp32.onnx go beside it",
     )
     p_export.add_argument("--variant", default=None,
-                          help="export variant (default: the shipped one, lean-int8-fastood; see docs/predictor.md)")
+                          help="export variant (default: the shipped one, hybrid-int8-fastood, which needs the surface "
+                               "decoder; a run with the latent decoders only: e.g. lean-int8-fastood; docs/predictor.md)")
     p_export.add_argument("--overwrite", action="store_true", help="replace an existing --out and its files")
+    p_export.add_argument("--bundle", default=None,
+                          help="weights to export (default: RUN/model.pt; e.g. its slim bundle exported/gelslim_mesh.pt)")
     sub.add_parser("export-adapt", help="export the adaptation step of a bundle (--help for its options)")
     p_rep = sub.add_parser("report-coarsening", help="reconstruction errors of the coarsening hierarchy")
     p_rep.add_argument("--data", required=True, help="npz with displacement_mm (S, n, 3): e.g. a run's heldout.npz")
     p_rep.add_argument("--png", help="also draw one contact projected down and up")
     p_rep.add_argument("--n", type=int, default=200, help="contacts used")
+    p_slim = sub.add_parser("slim-bundle", help="a training bundle with the trained modules' weights only (float16 by "
+                            "default), for committing; export from it")
+    p_slim.add_argument("--bundle", required=True, help="model.pt of a training run")
+    p_slim.add_argument("--out", required=True, help="bundle to write (e.g. exported/gelslim_mesh.pt)")
+    p_slim.add_argument("--dtype", default="float16", choices=["float16", "float32"])
     p_bank = sub.add_parser(
         "envelope-bank",
         help="write the indenters' envelope grids to an .npz (data.synthetic.envelope_bank, for machines without trimesh)",
@@ -90,18 +116,22 @@ def _main(argv: list[str]) -> int:
     p_held.add_argument("--run", required=True, help="run folder holding config.json")
     p_held.add_argument("--n", type=int, default=512, help="contacts")
     p_held.add_argument("--seed", type=int, default=1007, help="generator seed (not the training seed)")
-    p_eval = sub.add_parser("evaluate", help="the model against the physics baseline on five domains (training/evaluation.py)")
-    p_eval.add_argument("--model", default="exported/gelslim_mesh.onnx", help="ONNX model")
+    p_eval = sub.add_parser("evaluate", help="models against the physics lift, domain by domain (training/evaluation.py)")
+    p_eval.add_argument("--model", action="append", default=None,
+                        help="ONNX model, or LABEL=PATH; repeat to compare models (default: exported/gelslim_mesh.onnx)")
     p_eval.add_argument("--out", required=True, help="JSON report to write")
     p_eval.add_argument("--n", type=int, default=256, help="contacts per domain (large_strain: n / 8)")
     p_eval.add_argument("--seed", type=int, default=2024)
     p_eval.add_argument("--domains", default=None, help="comma-separated subset of the domains")
     p_eval.add_argument("--shared", default="../shared/data/indenters", help="folder of the shared STL indenters")
+    p_eval.add_argument("--card", default=None,
+                        help="model card (<model>.json) of the first --model: its 'evaluation' section and markdown "
+                             "are rewritten with this report's table (the card must describe that very file)")
     args = parser.parse_args(argv)
 
     if args.command == "evaluate":
         from tactile_deploy.atomic import write_json
-        from training.evaluation import DOMAINS, run_evaluation
+        from training.evaluation import DOMAINS, EvaluationReport, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
         unknown = [d for d in domains if d not in DOMAINS]
@@ -109,22 +139,55 @@ def _main(argv: list[str]) -> int:
             raise UsageError(f"--domains: unknown {', '.join(map(repr, unknown))}; choose among {', '.join(DOMAINS)}")
         if args.n < 1:
             raise UsageError(f"--n must be >= 1 (contacts per domain), got {args.n}")
-        if "shared_stl" in domains and not Path(args.shared).is_dir():
-            raise UsageError(f"--shared {args.shared}: no such folder (the shared_stl domain reads its STL indenters "
-                             "there); give the folder, or leave shared_stl out of --domains")
+        if "unseen_shapes" in domains and not Path(args.shared).is_dir():
+            raise UsageError(f"--shared {args.shared}: no such folder (the unseen_shapes domain reads its STL indenters "
+                             "there); give the folder, or leave unseen_shapes out of --domains")
         out = _check_output_json(args.out, "--out")
-        model = Path(args.model)
-        if not model.is_file():
-            raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m training export)")
-        from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
+        models = {}
+        for spec in args.model or ["exported/gelslim_mesh.onnx"]:
+            label, sep, path = spec.partition("=") if "=" in spec and not Path(spec).is_file() else ("", "", spec)
+            model = Path(path)
+            label = label or (model.stem if args.model and len(args.model) > 1 else "model")
+            if not model.is_file():
+                raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m training export)")
+            if label in models:
+                raise UsageError(f"--model {spec}: the label {label!r} is given twice; name them LABEL=PATH")
+            from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
 
-        try:
-            MeshPredictor(model, warmup=0)
-        except ModelContractError as e:
-            raise UsageError(f"--model {model}: {e}") from None
-        report = run_evaluation(model, args.n, args.seed, domains, Path(args.shared))
+            try:
+                MeshPredictor(model, warmup=0)
+            except ModelContractError as e:
+                raise UsageError(f"--model {model}: {e}") from None
+            models[label] = model
+        from training.evaluation import markdown_table
+
+        card_path = Path(args.card) if args.card else None
+        if card_path is not None:
+            card = _card_of(card_path, next(iter(models.values())))
+        report = run_evaluation(models, args.n, args.seed, domains, Path(args.shared))
+        EvaluationReport.model_validate(report)  # the committed format (training/evaluation_report.schema.json)
         write_json(out, report)
+        print(markdown_table(report))
         print(f"wrote {out}")
+        if card_path is not None:
+            from training.card import write_card
+
+            label = next(iter(models))
+            card["evaluation"] = {
+                "command": "python -m training evaluate " + " ".join(map(str, argv[1:])),
+                "seed": args.seed, "report": str(out), "table": markdown_table(report, label)}
+            write_card(card, card_path, card_path.with_suffix(".md"))
+            print(f"wrote the evaluation into {card_path} and {card_path.with_suffix('.md')}")
+        return 0
+
+    if args.command == "slim-bundle":
+        from training.train import slim_bundle
+
+        if Path(args.out).resolve() == Path(args.bundle).resolve():
+            raise UsageError(f"--out {args.out} is the --bundle itself: write the slim bundle elsewhere")
+        info = slim_bundle(args.bundle, args.out, args.dtype)
+        print(f"wrote {args.out}: {info['tensors']} tensors, {info['numbers']:,} numbers ({info['dtype']}), "
+              f"{info['bytes'] / 2**20:.1f} MiB")
         return 0
 
     if args.command == "heldout":
@@ -145,7 +208,8 @@ def _main(argv: list[str]) -> int:
                              f"{cfg.data.synthetic.seed}, so that no contact is shared")
         data = fresh_contacts(cfg.data.synthetic, args.n, args.seed)
         write_npz(run / "heldout.npz", depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
-                  indenter=data.indenter, source=np.array(data.source), seed=np.array(args.seed))
+                  indenter=data.indenter, source=np.array(data.source), seed=np.array(args.seed),
+                  contact_mask=data.contact_mask)
         print(f"wrote {args.run}/heldout.npz: {len(data)} contacts ({data.source})")
         return 0
 
@@ -178,6 +242,7 @@ def _main(argv: list[str]) -> int:
 
     if args.command == "train":
         from training.config import TrainConfig, check_device
+        from training.train import STAGES
 
         cfg = TrainConfig.load(args.config)
         if args.device:
@@ -186,6 +251,19 @@ def _main(argv: list[str]) -> int:
             except ValueError as e:
                 raise UsageError(f"--device: {e}") from None
             cfg = cfg.model_copy(update={"device": args.device})
+        if args.run_dir:
+            cfg = cfg.model_copy(update={"run_dir": args.run_dir})
+        for item in args.time_budget:
+            stage, _, value = item.partition("=")
+            current = getattr(cfg, stage, None) if stage in STAGES else None
+            try:
+                seconds = float(value)
+            except ValueError:
+                seconds = -1.0
+            if current is None or not seconds > 0:
+                raise UsageError(f"--time-budget {item}: expected STAGE=SECONDS with a stage of the config "
+                                 f"({', '.join(s for s in STAGES if getattr(cfg, s, None) is not None)}) and seconds > 0")
+            cfg = cfg.model_copy(update={stage: current.model_copy(update={"time_budget_s": seconds})})
         from training.train import train
 
         try:
@@ -201,7 +279,9 @@ def _main(argv: list[str]) -> int:
     variant = args.variant or SHIPPED_VARIANT
     out = Path(args.out)
     check_export(args.run, out, variant, args.overwrite)
-    card = export_run(args.run, out, variant=variant, overwrite=args.overwrite)
+    if args.bundle is not None and not Path(args.bundle).is_file():
+        raise UsageError(f"--bundle {args.bundle}: no such file; give a training bundle (model.pt or its slim bundle)")
+    card = export_run(args.run, out, variant=variant, overwrite=args.overwrite, bundle_path=args.bundle)
     par = card["parity"]
     files = [out, *([out.with_name(par["graph"])] if par["graph"] != out.name else []),
              out.with_suffix(".json"), out.with_suffix(".md")]

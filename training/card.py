@@ -28,6 +28,15 @@ class FileInfo(StrictModel):
     card_json: str
 
 
+class CardEvaluation(StrictModel):
+    """The per-domain evaluation of the card's graph against the physics lift."""
+
+    command: str = Field(description="The command that wrote it (and the report).")
+    seed: int = Field(ge=0, description="Seed of the fresh contacts.")
+    report: str = Field(description="The evaluation report (training.evaluation.EvaluationReport), path in the repository.")
+    table: str = Field(description="Markdown table: a row per domain, this graph beside the physics lift, targets.")
+
+
 class ModelCard(StrictModel):
     format_version: int = CARD_FORMAT
     name: str
@@ -52,6 +61,9 @@ class ModelCard(StrictModel):
     limitations: list[str]
     intended_use: list[str] = []
     export_seconds: float
+    evaluation: CardEvaluation | None = Field(
+        None, description="Per-domain evaluation of this graph (python -m training evaluate ... --card), when run.",
+    )
 
 
 #: What the exported model is for (rendered in every card).
@@ -94,20 +106,15 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
         ),
         architecture={
             "model": cfg["model"],
-            "deployed_path": (
-                "image encoder (mean) -> latent projection -> "
-                + ("lean grid decoder" if variant.startswith("lean") else "COMA mesh decoder")
-                + (" (int8 QDQ weights and activations)" if "-int8" in variant else " (fp32)")
-                + ("; ood_score from the lean image decoder" if variant.endswith("-fastood")
-                   else "; ood_score from the image VAE decoder")
-            ),
+            "deployed_path": deployed_path(variant),
         },
         training={
             "commit": bundle["git"]["commit"],
             "dirty": bool(bundle["git"]["dirty"]),
             "data": m["data"],
             "stages": {
-                k: cfg[k] for k in ("image_vae", "mesh_vae", "lean_decoder", "ood_decoder", "projection", "finetune")
+                k: cfg[k] for k in ("image_vae", "surface", "mesh_vae", "lean_decoder", "ood_decoder", "projection",
+                                    "finetune")
                 if cfg.get(k) is not None
             },
             "device": cfg["device"],
@@ -120,18 +127,52 @@ def build_card(bundle, variant, out, ref_path, parity, accuracy, ood_threshold, 
         int8_calibration=int8_calibration,
         ood=m["ood_lean"] if variant.endswith("-fastood") else m["ood"],
         ood_threshold_mm=ood_threshold,
-        limitations=[
-            "Trained on simulated depth maps of primitive indenters (linear-elastic FEM, frictionless, "
-            "nu = 0.48); real sensor maps need the self-supervised adaptation step.",
-            "The 5,380-node mesh smooths contact features finer than ~2 mm.",
-            "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
-            "On simulated data the physics baseline (depth map as the surface's normal displacement + linear "
-            "FEM) is more accurate in every domain measured (docs/predictor.md, evaluation by domain).",
-        ],
+        limitations=limitations(cfg, variant),
         intended_use=INTENDED_USE,
         export_seconds=round(float(seconds), 2),
     )
     return card.model_dump(mode="json")
+
+
+def deployed_path(variant: str) -> str:
+    """One line: what the graph of ``variant`` computes."""
+    int8 = "-int8" in variant
+    if variant.startswith(("surface", "hybrid")):
+        path = ("sensing nodes anchored on the measured surface (u_z = -depth where each node has moved) + the "
+                "surface decoder's residual (image encoder feature maps at every scale and latent -> convolutional "
+                "decoder -> residual displacement of every node)")
+        if variant.startswith("hybrid"):
+            path += ("; the sensing nodes' lateral displacement from the physics lift of their u_z (the pad's linear "
+                     "FEM, one dense product" + (", int8" if int8 else "") + ")")
+        precision = " (fp32" + (" but the lateral lift" if int8 else "") + ")"
+    else:
+        path = "image encoder (mean) -> latent projection -> " + (
+            "lean grid decoder" if variant.startswith("lean") else "COMA mesh decoder")
+        precision = " (int8 QDQ encoder, projection, image decoder)" if int8 else " (fp32)"
+    return (path + precision + ("; ood_score from the lean image decoder" if variant.endswith("-fastood")
+                                else "; ood_score from the image VAE decoder"))
+
+
+def limitations(cfg: dict, variant: str) -> list[str]:
+    """What the model does not cover, from its training config."""
+    syn = (cfg.get("data") or {}).get("synthetic") or {}
+    laws = syn.get("friction", "frictionless")
+    laws = laws if isinstance(laws, str) else " + ".join(laws)
+    depth = (f"{syn['depth_min_mm']:g}-{syn['depth_max_mm']:g} mm deep" if syn else "as in its dataset")
+    out = [
+        f"Trained on simulated depth maps of primitive indenters ({laws} contact, linear-elastic FEM, nu = "
+        f"{syn.get('nu', 0.48)}, {depth}); real sensor maps need the self-supervised adaptation step.",
+        "The 5,380-node mesh smooths contact features finer than ~2 mm.",
+        "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
+    ]
+    if variant.startswith(("surface", "hybrid")):
+        out.append("The sensing nodes follow the depth map: an error of the depth map (read-out, camera view) "
+                   "is an error of the mesh where it is, unless it looks like the noise the model was trained "
+                   "to remove.")
+    else:
+        out.append("The latent decoders rebuild the whole pad from 128 numbers: contact patches come out far less "
+                   "accurate than from the physics lift (docs/predictor.md, evaluation by domain).")
+    return out
 
 
 def write_card(card: dict, json_path: Path, md_path: Path) -> None:
@@ -140,6 +181,31 @@ def write_card(card: dict, json_path: Path, md_path: Path) -> None:
     ModelCard.model_validate(card)
     write_json(json_path, card)
     write_text(md_path, render_markdown(card))
+
+
+def _metrics_lines(acc: dict) -> list[str]:
+    """The figures of training/metrics.py for the shipped graph and the physics lift, as a table."""
+    if "metrics" not in acc:
+        return []
+    rows = [("shipped graph", acc["metrics"])] + ([("physics lift", acc["physics_lift"])] if "physics_lift" in acc else [])
+    out = ["", "| method | contact patch RMSE um | deepest node error % (mean, signed / mean abs) | all-node RMSE um |",
+           "|---|---|---|---|"]
+    for name, m in rows:
+        patch = f"{m['contact_patch_rmse_um']:.1f}" if "contact_patch_rmse_um" in m else "-"
+        dn = m["deepest_node_error_pct"]
+        out.append(f"| {name} | {patch} | {dn['mean']:+.2f} / {dn['mean_abs']:.2f} | {m['all_node_rmse_um']:.1f} |")
+    out += ["", "Per-node Euclidean errors (training/metrics.py)."]
+    return out
+
+
+def _evaluation_lines(card: dict) -> list[str]:
+    """The per-domain evaluation table, when the card carries one."""
+    ev = card.get("evaluation")
+    if not ev:
+        return []
+    return ["", "## Evaluation by domain", "",
+            f"`{ev['command']}` (fresh contacts, seed {ev['seed']}; the physics lift beside every figure):", "",
+            ev["table"].rstrip()]
 
 
 def render_markdown(card: dict) -> str:
@@ -165,20 +231,23 @@ def render_markdown(card: dict) -> str:
         f"- `{card['files']['onnx']}` ({card['files']['onnx_mb']} MiB, sha256 `{card['files']['onnx_sha256'][:16]}...`)",
         f"- `{card['files']['reference_fp32']}`: fp32 graph of the same weights",
         "",
-        "## Held-out accuracy (shipped graph, mm)",
+        "## Held-out accuracy (shipped graph)",
         "",
         f"- samples: {acc['n_samples']} (contacts never seen in training)",
-        f"- vertex RMSE: {acc['vertex_rmse_mm']:.4f} mm; relative displacement error: "
+        f"- vertex RMSE: {acc['vertex_rmse_mm']:.4f} mm per coordinate; relative displacement error: "
         f"{acc['relative_error']:.3f}; largest node error: {acc['max_error_mm']:.3f} mm",
+        *_metrics_lines(acc),
         "",
         "Training-time evaluation (torch, held-out):",
         "",
         "| decoder | vertex RMSE mm | relative error | mesh VAE reconstruction RMSE mm |",
         "|---|---|---|---|",
         *[
-            f"| {k} | {v['vertex_rmse_mm']:.4f} | {v['relative_error']:.3f} | {v['mesh_reconstruction_rmse_mm']:.4f} |"
+            f"| {k} | {v['vertex_rmse_mm']:.4f} | {v['relative_error']:.3f} | "
+            + (f"{v['mesh_reconstruction_rmse_mm']:.4f}" if "mesh_reconstruction_rmse_mm" in v else "-") + " |"
             for k, v in card["torch_heldout_metrics"].items()
         ],
+        *_evaluation_lines(card),
         "",
         "## Parity",
         "",

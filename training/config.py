@@ -88,26 +88,51 @@ class LeanImageDecoderConfig(StrictModel):
     )
 
 
+class SurfaceDecoderConfig(StrictModel):
+    """The surface-anchored decoder (:mod:`training.networks.surface_decoder`): sensing nodes on the
+    measured surface, a convolutional residual with skips from every encoder level."""
+
+    channels: tuple[int, ...] = Field(
+        (32, 32, 32, 32), description="Decoder channels at 4 x 4, 8 x 8, ...: one per level up to the last "
+        "feature grid (4 x 2**(len - 1) pixels a side)."
+    )
+    conv3x3_at: tuple[int, ...] = Field((8, 16), description="Grid sides (4, 8, ...) that get a 3 x 3 convolution.")
+    latent_start: bool = Field(True, description="Add an FC of the image latent to the 4 x 4 start (global context).")
+    anchor: Literal["rest", "moved"] = Field(
+        "rest", description="Where a sensing node reads the depth map: at its rest (x, y), or where the decoder "
+        "moves it (rest + predicted lateral displacement: the depth map shows the surface where it has moved to).",
+    )
+    half_extent_mm: float = Field(17.5, gt=0, description="The depth map spans +-this in x and y, mm.")
+
+
 class ModelConfig(StrictModel):
     image: ImageVAEConfig = Field(default_factory=ImageVAEConfig)
     mesh: MeshVAEConfig = Field(default_factory=MeshVAEConfig)
     projection: ProjectionConfig = Field(default_factory=ProjectionConfig)
     lean_decoder: GridDecoderConfig = Field(default_factory=GridDecoderConfig)
     ood_decoder: LeanImageDecoderConfig = Field(default_factory=LeanImageDecoderConfig)
+    surface: SurfaceDecoderConfig | None = Field(
+        None, description="The surface-anchored decoder (the deployed one when given; None: the latent decoders only)."
+    )
 
 
 class SyntheticData(StrictModel):
     """Generate the data with the contact simulator (each rank of a distributed run its own shard)."""
 
-    n_samples: int = Field(gt=0, description="Contacts per rank.")
+    n_samples: int = Field(gt=0, description="Contacts per rank (with split_over_ranks: over all ranks).")
+    split_over_ranks: bool = Field(
+        False, description="n_samples is the total of a distributed run: rank r of W makes n_samples // W (+1 for "
+        "r < n_samples % W), so 1, 2 or 4 GPUs train on the same amount of data.",
+    )
     indenters: tuple[str, ...] | Literal["primitive"] = Field("primitive", description="Names, or all primitives.")
     seed: int = Field(0, ge=0, description="Rank r draws from default_rng([seed, r]).")
     depth_min_mm: float = Field(0.2, gt=0)
     depth_max_mm: float = Field(1.2, gt=0)
     radius_max_mm: float = Field(12.0, ge=0, description="Contacts lie within this radius, mm.")
     nu: float = Field(0.48, ge=0, lt=0.5, description="Poisson ratio of the gel.")
-    friction: Literal["frictionless", "stick"] = Field(
-        "frictionless", description="Contact law of the simulated presses: the gel slides freely, or sticks to the indenter."
+    friction: Literal["frictionless", "stick"] | tuple[Literal["frictionless", "stick"], ...] = Field(
+        "frictionless", description="Contact law of the simulated presses: the gel slides freely, or sticks to the "
+        "indenter; a list of laws makes a mixture (equal shares, law k for contacts k, k + L, ...).",
     )
     contact_radius_mm: float | None = Field(
         None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
@@ -159,6 +184,23 @@ class StageConfig(StrictModel):
     )
 
 
+class SurfaceStageConfig(StageConfig):
+    """The surface stage: image encoder + surface-anchored decoder end to end on the mesh error,
+    with the image VAE's loss beside it so that its reconstruction (ood_score, adaptation filter)
+    stays trained."""
+
+    surface_weight: float = Field(1.0, ge=0, description="Extra weight of the sensing layer's nodes in the mesh MSE.")
+    contact_weight: float = Field(4.0, ge=0, description="Extra weight of the sensing nodes in contact in the mesh MSE.")
+    image_weight: float = Field(
+        0.1, ge=0, description="Weight of the image VAE loss (its decoder trains too; 0 with train_encoder false)."
+    )
+    train_encoder: bool = Field(True, description="Train the image encoder with the decoder (else frozen).")
+    train_ood_decoder: bool = Field(
+        False, description="Train the lean image decoder (the deployed ood_score) in this stage too, on the "
+        "reconstruction from the latent mean, with the image VAE's weight (the ood_decoder stage then fine-tunes it).",
+    )
+
+
 class AugmentationConfig(StrictModel):
     """Augmentation of the simulated depth maps (:mod:`training.augment`); ranges are (low, high)
     of uniform draws per map. Defaults: the ranges measured on the virtual GelSlim sensors
@@ -201,9 +243,21 @@ class TrainConfig(StrictModel):
     threads: int | None = Field(None, gt=0, description="torch intra-op threads (CPU).")
     model: ModelConfig = Field(default_factory=ModelConfig)
     data: DataConfig
-    image_vae: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
-    mesh_vae: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
-    projection: StageConfig = Field(default_factory=lambda: StageConfig(epochs=20))
+    image_vae: StageConfig | None = Field(
+        default_factory=lambda: StageConfig(epochs=20),
+        description="Pre-train the image VAE alone (None: the surface stage trains it from scratch with the decoder).",
+    )
+    mesh_vae: StageConfig | None = Field(
+        default_factory=lambda: StageConfig(epochs=20),
+        description="The mesh VAE (COMA); None: skip it and the latent decoders built on it (lean_decoder, "
+        "projection, finetune), for a model with the surface decoder.",
+    )
+    projection: StageConfig | None = Field(
+        default_factory=lambda: StageConfig(epochs=20), description="The latent projection (None: skip; needs mesh_vae)."
+    )
+    surface: SurfaceStageConfig | None = Field(
+        None, description="Train the surface-anchored decoder (model.surface) with the image encoder (None: skip)."
+    )
     lean_decoder: StageConfig | None = Field(
         default_factory=lambda: StageConfig(epochs=20),
         description="Train the lean decoder on the frozen mesh encoder's latents (None: skip).",
@@ -232,8 +286,19 @@ class TrainConfig(StrictModel):
 
     @model_validator(mode="after")
     def _check_stages(self) -> "TrainConfig":
-        if self.finetune is not None and self.lean_decoder is None:
-            raise ValueError("finetune trains the lean decoder: give lean_decoder too, or set finetune to null")
+        if self.finetune is not None and (self.lean_decoder is None or self.projection is None):
+            raise ValueError("finetune trains the projection and the lean decoder: give both, or set finetune to null")
+        if self.mesh_vae is None and (self.lean_decoder is not None or self.projection is not None):
+            raise ValueError("lean_decoder and projection decode the mesh VAE's latent: give mesh_vae too, or set "
+                             "them to null")
+        if (self.surface is None) != (self.model.surface is None):
+            raise ValueError("the surface stage trains model.surface: give both, or neither")
+        if self.image_vae is None and (self.surface is None or not self.surface.train_encoder
+                                       or self.surface.image_weight == 0):
+            raise ValueError("without image_vae the image VAE is trained only by the surface stage: give surface "
+                             "with train_encoder true and image_weight > 0, or give image_vae")
+        if self.mesh_vae is None and self.surface is None:
+            raise ValueError("no mesh decoder would be trained: give mesh_vae (and projection) or surface")
         return self
 
     @staticmethod

@@ -32,13 +32,15 @@ log = logging.getLogger(__name__)
 @dataclass
 class ContactData:
     """depth_mm (N, R, R) float32; displacement_mm (N, n, 3) float32, sensor frame;
-    contact_id (N,) int64 (same id = same press); indenter (N,) str."""
+    contact_id (N,) int64 (same id = same press); indenter (N,) str; contact_mask (N, m) bool,
+    sensing nodes touching the indenter (None where the source does not say)."""
 
     depth_mm: np.ndarray
     displacement_mm: np.ndarray
     contact_id: np.ndarray
     indenter: np.ndarray
     source: str
+    contact_mask: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.depth_mm)
@@ -50,13 +52,16 @@ class ContactData:
             )
         if len(self.contact_id) != n or len(self.indenter) != n:
             raise ValueError("contact_id and indenter need one entry per sample")
+        if self.contact_mask is not None and (self.contact_mask.ndim != 2 or len(self.contact_mask) != n):
+            raise ValueError(f"contact_mask must have shape ({n}, n_sensing_nodes), got {self.contact_mask.shape}")
 
     def __len__(self) -> int:
         return len(self.depth_mm)
 
     def subset(self, idx: np.ndarray) -> "ContactData":
         return ContactData(
-            self.depth_mm[idx], self.displacement_mm[idx], self.contact_id[idx], self.indenter[idx], self.source
+            self.depth_mm[idx], self.displacement_mm[idx], self.contact_id[idx], self.indenter[idx], self.source,
+            None if self.contact_mask is None else self.contact_mask[idx],
         )
 
     def summary(self) -> dict:
@@ -104,7 +109,7 @@ def load_dataset_dir(folder: str | Path, rank: int = 0, world: int = 1) -> Conta
     mine = paths[rank::world]
     if not mine:
         raise ValueError(f"{folder}: {len(paths)} shards cannot feed rank {rank} of {world}")
-    parts = {"depth": [], "displacement": [], "ind": [], "x": [], "y": [], "t": []}
+    parts = {"depth": [], "displacement": [], "ind": [], "x": [], "y": [], "t": [], "mask": []}
     for p in mine:
         with np.load(p) as d:
             names = d["indenter_names"]
@@ -114,6 +119,7 @@ def load_dataset_dir(folder: str | Path, rank: int = 0, world: int = 1) -> Conta
             parts["x"].append(d["x_mm"])
             parts["y"].append(d["y_mm"])
             parts["t"].append(d["theta_deg"])
+            parts["mask"].append(d["contact_mask"] if "contact_mask" in d.files else None)
     ind = np.concatenate(parts["ind"]).astype(str)
     return ContactData(
         np.concatenate(parts["depth"]),
@@ -121,6 +127,7 @@ def load_dataset_dir(folder: str | Path, rank: int = 0, world: int = 1) -> Conta
         contact_ids(ind, np.concatenate(parts["x"]), np.concatenate(parts["y"]), np.concatenate(parts["t"])),
         ind,
         source=f"{Path(folder).name} (mesh {card.mesh_hash[:12]}, shards {rank}::{world})",
+        contact_mask=None if any(m is None for m in parts["mask"]) else np.concatenate(parts["mask"]).astype(bool),
     )
 
 
@@ -147,18 +154,19 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
 
     if spec.depth_min_mm > spec.depth_max_mm:
         raise ValueError(f"depth_min_mm={spec.depth_min_mm} exceeds depth_max_mm={spec.depth_max_mm}")
-    material = Material(nu=spec.nu, friction=spec.friction)
     pad = load_pad()
     allowed = None
-    if spec.contact_radius_mm is None:
-        sim = get_simulator(material)
-    else:
+    if spec.contact_radius_mm is not None:
         xy = pad.vertices[pad.sensing_nodes, :2]
         allowed = np.hypot(xy[:, 0], xy[:, 1]) <= spec.contact_radius_mm
-        # numpy assembly: 0.3 s, against ~30 s of kernel compilation for a cold warp cache
-        sim = ContactSimulator(
-            pad, material, assembly="numpy", formulation=spec.formulation, contact_nodes=np.flatnonzero(allowed)
-        )
+    materials, sims = [], []
+    for law in friction_laws(spec):
+        materials.append(Material(nu=spec.nu, friction=law))
+        if allowed is None:
+            sims.append(get_simulator(materials[-1]))
+        else:  # numpy assembly: 0.3 s, against ~30 s of kernel compilation for a cold warp cache
+            sims.append(ContactSimulator(pad, materials[-1], assembly="numpy", formulation=spec.formulation,
+                                         contact_nodes=np.flatnonzero(allowed)))
     cam = get_camera()
     names = _indenter_names(spec)
     indenters = [get_indenter(n) for n in names]
@@ -166,10 +174,12 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     n = spec.n_samples
     depth = np.zeros((n, cam.resolution, cam.resolution), np.float32)
     disp = np.zeros((n, pad.n_nodes, 3), np.float32)
+    mask = np.zeros((n, pad.n_plane), bool)
     cid = np.zeros(n, np.int64)
     ind = np.empty(n, dtype=object)
     i = contact = rejected = 0
     while i < n:
+        material, sim = materials[contact % len(materials)], sims[contact % len(sims)]
         k = int(rng.integers(len(indenters)))
         r = spec.radius_max_mm * math.sqrt(rng.random())
         phi = 2.0 * math.pi * rng.random()
@@ -187,6 +197,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 break
             depth[i] = s.depth_mm
             disp[i] = s.vertices_mm - s.rest_vertices_mm
+            mask[i] = s.contact_mask
             cid[i] = contact
             ind[i] = names[k]
             i += 1
@@ -197,7 +208,13 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 f"contact_radius_mm={spec.contact_radius_mm} with radius_max_mm={spec.radius_max_mm}; "
                 "use smaller indenters, a smaller radius_max_mm or a larger contact_radius_mm"
             )
-    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic seed={spec.seed} rank={rank}")
+    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic seed={spec.seed} rank={rank}",
+                       contact_mask=mask)
+
+
+def friction_laws(spec: SyntheticData) -> tuple[str, ...]:
+    """The contact laws of ``spec`` (one, or the mixture's in order)."""
+    return (spec.friction,) if isinstance(spec.friction, str) else tuple(spec.friction)
 
 
 def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
@@ -235,18 +252,26 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     device = torch.device(device)
     # on a GPU the operators are factored there in ~2 s; on a CPU the contact simulator's cache is reused
     operators = "torch" if device.type == "cuda" else "auto"
-    sim = BatchedContactSimulator(
-        pad, Material(nu=spec.nu, friction=spec.friction), device, torch.float32, formulation=spec.formulation,
-        operators=operators,
-    )
+    laws = friction_laws(spec)
     g = torch.Generator(device="cpu").manual_seed(int(spec.seed) * 1_000_003 + rank)
     n = spec.n_samples
     depth = np.zeros((n, 128, 128), np.float32)
     disp = np.zeros((n, pad.n_nodes, 3), np.float32)
+    mask = np.zeros((n, pad.n_plane), bool)
     ind = np.empty(n, dtype=object)
     i = drawn = 0
+    # law k fills samples [bounds[k], bounds[k + 1]): equal shares, in order
+    bounds = [round(k * n / len(laws)) for k in range(len(laws) + 1)]
+    sim, sim_law = None, None
     while i < n:
-        m = min(batch, max(64, 2 * (n - i)))  # a few spare draws for contacts that touch nothing
+        law = laws[max(k for k in range(len(laws)) if bounds[k] <= i)]
+        if law != sim_law:
+            del sim
+            sim = BatchedContactSimulator(pad, Material(nu=spec.nu, friction=law), device, torch.float32,
+                                          formulation=spec.formulation, operators=operators)
+            sim_law = law
+        end = min(b for b in bounds if b > i)
+        m = min(batch, max(64, 2 * (end - i)))  # a few spare draws for contacts that touch nothing
         index = torch.randint(len(names), (m,), generator=g)
         r = spec.radius_max_mm * torch.sqrt(torch.rand(m, generator=g, dtype=torch.float64))
         phi = 2 * math.pi * torch.rand(m, generator=g, dtype=torch.float64)
@@ -255,14 +280,25 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
         poses = torch.stack([r * torch.cos(phi), r * torch.sin(phi), theta, dmm], 1)
         res = sim.solve(bank, index.to(device), poses.to(device))
         keep = (res.solved & res.contact_mask.any(dim=1)).cpu().numpy()
-        take = np.flatnonzero(keep)[: n - i]
+        take = np.flatnonzero(keep)[: end - i]
         drawn += m
         depth[i : i + len(take)] = res.depth_mm[take].cpu().numpy()
         disp[i : i + len(take)] = res.displacements_mm[take].cpu().numpy()
+        mask[i : i + len(take)] = res.contact_mask[take].cpu().numpy()
         ind[i : i + len(take)] = np.asarray(names)[index.numpy()[take]]
         i += len(take)
     cid = np.arange(n, dtype=np.int64) + rank * (1 << 40)
-    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic batched seed={spec.seed} rank={rank} drawn={drawn}")
+    return ContactData(depth, disp, cid, ind.astype(str), source=f"synthetic batched seed={spec.seed} rank={rank} drawn={drawn}",
+                       contact_mask=mask)
+
+
+def rank_spec(spec: SyntheticData, rank: int, world: int) -> SyntheticData:
+    """The generator settings of ``rank`` of ``world``: ``n_samples`` is this rank's share when
+    ``split_over_ranks``."""
+    if not spec.split_over_ranks:
+        return spec
+    share = spec.n_samples // world + (1 if rank < spec.n_samples % world else 0)
+    return spec.model_copy(update={"n_samples": max(1, share)})
 
 
 def cache_spec(spec: SyntheticData, rank: int = 0) -> dict:
@@ -322,7 +358,8 @@ def _cached_data(cfg: DataConfig, rank: int, world: int, read: bool = True) -> C
                                  "again for this config), or set another data.cache_file to keep it")
             if not read:
                 return None
-            return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]))
+            return ContactData(d["depth_mm"], d["displacement_mm"], d["contact_id"], d["indenter"], str(d["source"]),
+                               d["contact_mask"] if "contact_mask" in d.files else None)
     except UsageError:
         raise
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
@@ -356,10 +393,11 @@ def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> Contac
     if cached is not None:
         return cached
     cache = _cache_path(cfg, rank, world)
-    if cfg.synthetic.generator == "batched":
-        data = generate_batched(cfg.synthetic, rank, device)
+    spec = rank_spec(cfg.synthetic, rank, world)
+    if spec.generator == "batched":
+        data = generate_batched(spec, rank, device)
     else:
-        data = generate(cfg.synthetic, rank)
+        data = generate(spec, rank)
     if cache is not None:
         from tactile_deploy.atomic import write_npz
 
@@ -368,6 +406,7 @@ def load(cfg: DataConfig, rank: int = 0, world: int = 1, device="cpu") -> Contac
             cache, depth_mm=data.depth_mm, displacement_mm=data.displacement_mm,
             contact_id=data.contact_id, indenter=data.indenter, source=np.array(data.source),
             spec=np.array(json.dumps(cache_spec(cfg.synthetic, rank), sort_keys=True)),
+            **({} if data.contact_mask is None else {"contact_mask": data.contact_mask}),
         )
     return data
 

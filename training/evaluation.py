@@ -1,25 +1,29 @@
-"""Evaluation report of the exported predictor against the physics baseline, domain by domain.
+"""Evaluation of exported predictors against the physics lift, domain by domain.
 
 ``python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json``
 
-Domains (fresh contacts simulated on the CPU, never seen in training; poses drawn as in training:
-uniform in a disc of radius 12 mm, theta uniform, depth 0.2-1.2 mm):
+Domains (fresh contacts simulated on the CPU with seeds no training run uses; poses as in
+training: uniform in a disc of radius 12 mm, theta uniform):
 
-* ``primitives``: the training indenters, frictionless linear FEM (the training distribution);
-* ``shared_stl``: the 16 indenters of ``../shared/data/indenters`` (never trained on);
-* ``stick``: the training indenters with sticking contact (the gel does not slide on them);
-* ``large_strain``: the training indenters with the neo-Hookean large-deformation solve
-  (effect ``hyperelastic``, strength 1), depths 0.6-1.2 mm;
+* ``primitives``: the training indenters, frictionless, depth 0.2-1.2 mm;
+* ``coulomb``: the training indenters with Coulomb friction, mu uniform in 0.3-1.5 (needs a
+  simulator that solves Coulomb contact; reported as not available otherwise);
+* ``stick``: the training indenters, the gel sticking to them;
+* ``large_strain``: the training indenters with the neo-Hookean large-deformation solve (effect
+  ``hyperelastic``, strength 1), depth 0.6-1.2 mm;
 * ``noisy``: the primitives' depth maps with sensor-like noise: white noise of 10 um RMS plus a
-  smooth field of 20 um RMS (Gaussian-filtered noise, 2 mm correlation length).
+  smooth field of 20 um RMS (Gaussian-filtered noise, 2 mm correlation length);
+* ``unseen_shapes``: the 16 STL indenters of ``../shared/data/indenters``, never trained on,
+  frictionless, depth 0.2-1.2 mm.
 
-Methods: the ONNX model (onnxruntime, the shipped graph) and the physics baseline that needs no
-learning (:class:`tactile_deploy.fem.surface_to_volume.SurfaceToVolume`: the depth map as the
-sensing surface's normal displacement, the linear FEM for the rest).
+Methods: each ONNX model (onnxruntime, as the runtime runs it) and the **physics lift** that
+needs no learning (:class:`tactile_deploy.fem.surface_to_volume.SurfaceToVolume`: the depth map as
+the sensing surface's normal displacement, read where each node has moved to in 3 passes, the
+linear FEM for the rest of the pad).
 
-Metrics (mm, sensor frame): vertex RMSE over all nodes (the paper's metric), relative error
-``||pred - true|| / ||true||`` of the displacements, and the RMSE per region: sensing surface
-(layer 0), interior (the free layers below it), contact patch (sensing nodes in contact).
+Figures: :func:`training.metrics.mesh_metrics` (contact patch, deepest node, all nodes; per-node
+Euclidean errors in um), for every domain and method, and the lift's contact-patch error over the
+model's (``lift_ratio``).
 """
 
 from __future__ import annotations
@@ -29,8 +33,59 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
-DOMAINS = ("primitives", "shared_stl", "stick", "large_strain", "noisy")
+from tactile_deploy.fileformat import StrictModel
+from training.metrics import MeshMetrics
+
+DOMAINS = ("primitives", "coulomb", "stick", "large_strain", "noisy", "unseen_shapes")
+DOMAIN_LABELS = {
+    "primitives": "primitives, frictionless",
+    "coulomb": "Coulomb friction, mu 0.3-1.5",
+    "stick": "sticking contact",
+    "large_strain": "large strain (neo-Hookean), depth 0.6-1.2 mm",
+    "noisy": "noisy maps: 10 um white + 20 um smooth",
+    "unseen_shapes": "unseen shapes (shared STL indenters)",
+}
+#: Targets per domain: (largest contact-patch RMSE um, largest mean |deepest-node error| %, least
+#: lift_ratio); None where the domain has no such target.
+TARGETS = {
+    "primitives": (30.0, 3.0, None),
+    "unseen_shapes": (30.0, 3.0, None),
+    "coulomb": (50.0, None, 1.5),
+    "stick": (50.0, None, 1.5),
+    "large_strain": (50.0, None, 1.5),
+    "noisy": (50.0, None, 1.5),
+}
+PHYSICS_LIFT = "physics lift"
+
+
+class DomainResult(StrictModel):
+    """One domain of an evaluation report: every method's figures on the same contacts."""
+
+    n_samples: int = Field(ge=1, description="Contacts simulated for this domain.")
+    methods: dict[str, MeshMetrics] = Field(description="Model label (and 'physics lift') -> its figures.")
+    true_rms_displacement_um: float = Field(ge=0, description="RMS length of the true displacement over all nodes, um.")
+    seconds: float = Field(ge=0, description="Wall time of the domain (simulation + every method), s.")
+
+
+class DomainNotMeasured(StrictModel):
+    """A domain the simulator could not make, and why."""
+
+    unavailable: str
+
+
+class EvaluationReport(StrictModel):
+    """``python -m training evaluate --out REPORT.json`` (e.g. docs/results/evaluation.json)."""
+
+    models: dict[str, str] = Field(description="Label -> the ONNX model evaluated.")
+    seed: int = Field(ge=0, description="Seed of the fresh contacts (no training run uses it).")
+    metrics: str = Field(description="Where the figures are defined.")
+    domains: dict[str, DomainResult | DomainNotMeasured] = Field(description=f"Domain ({', '.join(DOMAINS)}) -> result.")
+
+
+class DomainUnavailable(RuntimeError):
+    """The simulator cannot make this domain's contacts (the message says why)."""
 
 
 @dataclass
@@ -51,16 +106,16 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
 
     if domain not in DOMAINS:
         raise ValueError(f"unknown domain {domain!r}; known: {', '.join(DOMAINS)}")
-    if domain == "shared_stl":
+    if domain == "unseen_shapes":
         if shared_dir is None or not shared_dir.is_dir():
             raise FileNotFoundError(f"shared indenter folder {shared_dir} not found: place ../shared beside the checkout")
         names = sorted(str(p) for p in shared_dir.glob("*.stl"))
     else:
         names = list(list_indenters("primitive"))
     indenters = [get_indenter(n_) for n_ in names]
-    friction = "stick" if domain == "stick" else "frictionless"
+    friction = {"stick": "stick", "coulomb": "coulomb"}.get(domain, "frictionless")
     material = Material(nu=0.48, friction=friction)
-    sim = get_simulator(material)
+    sim = None if domain == "coulomb" else get_simulator(material)
     cam = get_camera()
     effect = None
     depth_range = (0.2, 1.2)
@@ -78,7 +133,18 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
         pose = ContactPose(x_mm=r * math.cos(phi), y_mm=r * math.sin(phi), theta_deg=360 * rng.random(),
                            depth_mm=float(rng.uniform(*depth_range)))
         try:
-            if effect is None:
+            if domain == "coulomb":
+                mat = Material(nu=0.48, friction="coulomb", mu=float(rng.uniform(0.3, 1.5)))
+                try:
+                    s = simulate_contact(indenters[k], pose, mat, cam)
+                except (NotImplementedError, ValueError) as e:
+                    if "coulomb" in str(e).lower() or isinstance(e, NotImplementedError):
+                        raise DomainUnavailable(f"this simulator does not solve Coulomb friction ({e})") from None
+                    raise
+                depth.append(s.depth_mm)
+                disp.append(s.vertices_mm - s.rest_vertices_mm)
+                mask.append(s.contact_mask)
+            elif effect is None:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
                 depth.append(s.depth_mm)
                 disp.append(s.vertices_mm - s.rest_vertices_mm)
@@ -91,7 +157,9 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
                 depth.append(cam.render(sim.mesh, res.vertices_mm).depth_mm)
                 disp.append(res.displacements_mm.astype(np.float32))
                 mask.append(res.contact_mask)
-        except (ContactError, RuntimeError):
+        except (ContactError, RuntimeError) as e:
+            if isinstance(e, DomainUnavailable):
+                raise
             continue
         ind.append(Path(names[k]).stem)
     depth_arr = np.asarray(depth, np.float32)
@@ -113,62 +181,115 @@ def add_sensor_noise(depth_mm: np.ndarray, rng: np.random.Generator, white_um: f
     return (depth_mm + smooth + white).astype(np.float32)
 
 
-def region_metrics(pred: np.ndarray, true: np.ndarray, contact_mask: np.ndarray, n_plane: int,
-                   free_layers: int) -> dict:
-    """Errors (mm) of predicted displacements (N, n, 3) against the truth, overall and per region."""
-    err = (pred - true).astype(np.float64)
-    sq = (err**2).sum(-1)  # (N, n)
-    surface = sq[:, :n_plane]
-    interior = sq[:, n_plane: free_layers * n_plane]
-    patch = surface[contact_mask]
-    return {
-        "vertex_rmse_mm": float(np.sqrt(sq.mean() / 3)),
-        "relative_error": float(np.linalg.norm(err) / max(np.linalg.norm(true), 1e-12)),
-        "max_error_mm": float(np.sqrt(sq.max())),
-        "surface_rmse_mm": float(np.sqrt(surface.mean() / 3)),
-        "interior_rmse_mm": float(np.sqrt(interior.mean() / 3)),
-        "contact_patch_rmse_mm": float(np.sqrt(patch.mean() / 3)) if patch.size else float("nan"),
-    }
-
-
-def evaluate_domain(data: DomainData, model_path: Path, batch: int = 32) -> dict:
-    """Region metrics of the ONNX model and of the physics baseline on ``data``."""
+def physics_lift(depth_mm: np.ndarray) -> np.ndarray:
+    """Displacements (N, n, 3) mm of the physics lift (3 passes) for depth maps (N, R, R) mm."""
     from tactile_deploy.fem.material import Material
     from tactile_deploy.fem.surface_to_volume import SurfaceToVolume
-    from tactile_deploy.runtime.predictor import MeshPredictor
     from tactile_deploy.simulation.contact import get_simulator
 
-    predictor = MeshPredictor(model_path, threads=2)
-    preds = []
-    for i in range(0, len(data.depth_mm), batch):
-        preds.append(predictor.predict_depth(data.depth_mm[i: i + batch]).displacement_mm)
-    learned = np.concatenate(preds)
     s2v = SurfaceToVolume(get_simulator(Material(nu=0.48)))
-    mesh = s2v.mesh
-    physics = np.stack([s2v.vertices_from_depth(d) - mesh.vertices for d in data.depth_mm]).astype(np.float32)
-    n_plane = mesh.n_plane
-    free_layers = int(round(mesh.n_nodes / n_plane)) - 1  # the last layer is the bonded backplate
+    rest = s2v.mesh.vertices
+    return np.stack([s2v.vertices_from_depth(d) - rest for d in depth_mm]).astype(np.float32)
+
+
+def onnx_displacements(model_path: Path, depth_mm: np.ndarray, batch: int = 32, threads: int = 2) -> np.ndarray:
+    """Displacements (N, n, 3) mm of an exported model, run as the runtime runs it."""
+    from tactile_deploy.runtime.predictor import MeshPredictor
+
+    predictor = MeshPredictor(model_path, threads=threads, warmup=0)
+    return np.concatenate([predictor.predict_depth(depth_mm[i: i + batch]).displacement_mm
+                           for i in range(0, len(depth_mm), batch)])
+
+
+def evaluate_domain(data: DomainData, predictions: dict[str, np.ndarray], n_plane: int) -> dict:
+    """Figures of each method's displacements (name -> (N, n, 3) mm) on ``data``, and each
+    method's ``lift_ratio`` (the physics lift's contact-patch RMSE over the method's)."""
+    from training.metrics import mesh_metrics
+
+    methods = {name: mesh_metrics(p, data.displacement_mm, data.contact_mask, n_plane) for name, p in predictions.items()}
+    lift = methods.get(PHYSICS_LIFT, {}).get("contact_patch_rmse_um")
+    if lift is not None:
+        for name, m in methods.items():
+            m["lift_ratio"] = float(lift / m["contact_patch_rmse_um"]) if m.get("contact_patch_rmse_um") else None
     return {
         "n_samples": int(len(data.depth_mm)),
-        "learned": region_metrics(learned, data.displacement_mm, data.contact_mask, n_plane, free_layers),
-        "physics": region_metrics(physics, data.displacement_mm, data.contact_mask, n_plane, free_layers),
-        "true_rms_displacement_mm": float(np.sqrt(np.mean(data.displacement_mm.astype(np.float64) ** 2))),
+        "methods": methods,
+        "true_rms_displacement_um": float(np.sqrt(np.mean((data.displacement_mm.astype(np.float64) ** 2).sum(-1))) * 1e3),
     }
 
 
-def run_evaluation(model_path: str | Path, n: int = 256, seed: int = 2024,
+def run_evaluation(models: dict[str, Path] | str | Path, n: int = 256, seed: int = 2024,
                    domains: tuple[str, ...] = DOMAINS, shared_dir: Path | None = None, log=print) -> dict:
-    """Every domain: simulate ``n`` contacts (fewer for the costly large-strain solve), evaluate both methods."""
+    """Every domain: simulate ``n`` contacts (``large_strain``: n / 8, the costly solve), evaluate
+    each model (label -> ONNX path; one path: labelled "model") and the physics lift."""
     import time
 
-    out = {"model": str(model_path), "seed": seed, "domains": {}}
+    from tactile_deploy.pad.asset import load_pad
+
+    if not isinstance(models, dict):
+        models = {"model": Path(models)}
+    n_plane = load_pad().n_plane
+    out = {"models": {k: str(v) for k, v in models.items()}, "seed": seed,
+           "metrics": "training/metrics.py: per-node Euclidean error, um; deepest node in % of its true depth",
+           "domains": {}}
     for d in domains:
         t0 = time.perf_counter()
-        data = simulate_domain(d, n if d != "large_strain" else max(8, n // 8), seed, shared_dir)
-        res = evaluate_domain(data, Path(model_path))
+        try:
+            data = simulate_domain(d, n if d != "large_strain" else max(8, n // 8), seed, shared_dir)
+        except DomainUnavailable as e:
+            out["domains"][d] = {"unavailable": str(e)}
+            log(f"{d}: not evaluated: {e}")
+            continue
+        preds = {label: onnx_displacements(path, data.depth_mm) for label, path in models.items()}
+        preds[PHYSICS_LIFT] = physics_lift(data.depth_mm)
+        res = evaluate_domain(data, preds, n_plane)
         res["seconds"] = time.perf_counter() - t0
         out["domains"][d] = res
-        log(f"{d}: learned {res['learned']['vertex_rmse_mm'] * 1e3:.2f} um (rel {res['learned']['relative_error']:.3f}), "
-            f"physics {res['physics']['vertex_rmse_mm'] * 1e3:.2f} um (rel {res['physics']['relative_error']:.3f}) "
-            f"[{res['n_samples']} contacts, {res['seconds']:.0f} s]")
+        log(f"{d} [{res['n_samples']} contacts, {res['seconds']:.0f} s]: " + "; ".join(
+            f"{name} patch {m['contact_patch_rmse_um']:.1f} um, deepest {m['deepest_node_error_pct']['mean']:+.2f} % "
+            f"(|.| {m['deepest_node_error_pct']['mean_abs']:.2f}), all {m['all_node_rmse_um']:.1f} um"
+            for name, m in res["methods"].items()))
     return out
+
+
+def markdown_table(report: dict, model: str | None = None) -> str:
+    """The report as one markdown table: a row per domain, the model's figures with the physics
+    lift's beside them, and whether the domain's target is met."""
+    labels = [k for k in report["models"]] if model is None else [model]
+    lines = []
+    for label in labels:
+        lines += [
+            f"| domain (contacts) | contact patch um: {label} / lift | deepest node %: {label} / lift (mean, signed) "
+            f"| all nodes um: {label} / lift | lift / {label} (patch) | target |",
+            "|---|---|---|---|---|---|",
+        ]
+        for d, res in report["domains"].items():
+            if "unavailable" in res:
+                lines.append(f"| {DOMAIN_LABELS[d]} | not measured: {res['unavailable']} | | | | |")
+                continue
+            m, p = res["methods"][label], res["methods"][PHYSICS_LIFT]
+            lines.append(
+                f"| {DOMAIN_LABELS[d]} ({res['n_samples']}) | **{m['contact_patch_rmse_um']:.1f}** / {p['contact_patch_rmse_um']:.1f} "
+                f"| {m['deepest_node_error_pct']['mean']:+.1f} / {p['deepest_node_error_pct']['mean']:+.1f} "
+                f"| {m['all_node_rmse_um']:.1f} / {p['all_node_rmse_um']:.1f} | {m['lift_ratio']:.2f}x "
+                f"| {target_text(d, m)} |"
+            )
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def target_text(domain: str, m: dict) -> str:
+    """'met' or 'not met (...)' against :data:`TARGETS`."""
+    patch_max, deepest_max, ratio_min = TARGETS[domain]
+    misses, goals = [], [f"patch <= {patch_max:g} um"]
+    if m["contact_patch_rmse_um"] > patch_max:
+        misses.append("patch")
+    if deepest_max is not None:  # no "|" in the text: it goes into markdown table cells
+        goals.append(f"deepest node within {deepest_max:g} % (mean absolute)")
+        if m["deepest_node_error_pct"]["mean_abs"] > deepest_max:
+            misses.append(f"deepest node {m['deepest_node_error_pct']['mean_abs']:.2f} %")
+    if ratio_min is not None:
+        goals.append(f">= {ratio_min:g}x the lift")
+        if (m.get("lift_ratio") or 0) < ratio_min:
+            misses.append("ratio")
+    return f"{', '.join(goals)}: " + ("met" if not misses else f"**not met** ({', '.join(misses)})")

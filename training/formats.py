@@ -8,6 +8,7 @@ from pathlib import Path
 from tactile_deploy.fileformat import Format, schemas_main
 from training.card import ModelCard
 from training.config import TrainConfig
+from training.evaluation import EvaluationReport
 
 _HERE = Path(__file__).resolve().parent
 
@@ -16,6 +17,8 @@ FORMATS = {f.name: f for f in (
     Format("training config (training/configs/*.json)", TrainConfig,
            _HERE / "train_config.schema.json"),
     Format("model card (exported/NAME.json)", ModelCard, _HERE / "model_card.schema.json"),
+    Format("evaluation report (python -m training evaluate --out, docs/results/evaluation.json)", EvaluationReport,
+           _HERE / "evaluation_report.schema.json"),
 )}
 
 if __name__ == "__main__":

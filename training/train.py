@@ -41,7 +41,7 @@ from training.networks.image_vae import vae_loss
 from training.networks.predictor import Predictor
 
 BUNDLE_FORMAT = 1
-STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder", "finetune")
+STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder", "finetune", "surface")
 #: Settings that may change when a run is started again: they change neither the data nor any
 #: trained weight. A stage's ``epochs`` and ``time_budget_s`` may also change while the stage is
 #: not complete, and every setting of a stage not started yet.
@@ -49,7 +49,15 @@ RESUME_FREE = ("run_dir", "device", "threads", "eval_max_samples", "data.cache_f
 
 
 def git_commit(repo: Path | None = None) -> dict:
-    """{'commit': sha or 'unknown', 'dirty': bool} of the repository holding this package."""
+    """{'commit': sha or 'unknown', 'dirty': bool} of the repository holding this package; a copy
+    of the tree without its git history (a GPU machine's) names its commit in the environment
+    variable TRAINING_SOURCE_COMMIT (sha, with a "+dirty" suffix when the copy had changes)."""
+    import os
+
+    given = os.environ.get("TRAINING_SOURCE_COMMIT")
+    if given:
+        sha, _, flag = given.partition("+")
+        return {"commit": sha, "dirty": flag == "dirty", "recorded": "TRAINING_SOURCE_COMMIT"}
     repo = repo or Path(__file__).resolve().parents[1]
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
@@ -68,18 +76,89 @@ def build_model(cfg: TrainConfig) -> Predictor:
 
     pad = load_pad()
     hierarchy = build_hierarchy(pad, cfg.model.mesh.factors, cfg.model.mesh.pooling)
-    return Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
+    model = Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
+    # the gel's Poisson ratio of the training data: the lateral physics lift of hybrid exports uses it
+    model.nu = cfg.data.synthetic.nu if cfg.data.synthetic is not None else 0.48
+    return model
 
 
 class _Tensors:
-    """The rank's data as normalised tensors on the training device."""
+    """The rank's data as normalised tensors on the training device; ``contact`` (N, m) bool, the
+    sensing nodes in contact (None when the data do not say)."""
 
     def __init__(self, data: ContactData, model: Predictor, device: torch.device):
         norm = model.norm
         self.depth = torch.as_tensor(data.depth_mm[:, None]).to(device) / norm.depth_scale_mm.to(device)
         disp = torch.as_tensor(data.displacement_mm).to(device)
         self.disp = norm.to(device).normalise_displacement(disp) * norm.free_mask.to(device)
+        self.contact = None if data.contact_mask is None else torch.as_tensor(data.contact_mask).to(device)
         self.n = len(data)
+
+
+class SurfaceTrainer(torch.nn.Module):
+    """The modules the surface stage trains, as one module (for DistributedDataParallel):
+    normalised depth (B, 1, R, R) -> (normalised displacement (B, n, 3), image VAE reconstruction,
+    mu, logvar). The anchor reads the depth in mm (``x * depth_scale``)."""
+
+    def __init__(self, model: Predictor, ood: bool = False):
+        super().__init__()
+        self.ood_decoder = model.ood_decoder if ood else None
+        self.encoder = model.image_vae.encoder
+        self.surface_decoder = model.surface_decoder
+        self.image_decoder = model.image_vae.decoder
+        self.anchor = model.anchor  # buffers only
+        self.register_buffer("depth_scale_mm", model.norm.depth_scale_mm.detach().clone(), persistent=False)
+        self.register_buffer("scale_mm", model.norm.displacement_scale_mm.detach().clone(), persistent=False)
+        self.moved = model.cfg.surface.anchor == "moved"
+
+    def forward(self, x: torch.Tensor, sample: bool):
+        from training.networks.surface_decoder import add_anchor
+
+        maps, _ = self.encoder.feature_maps(x)
+        h = self.encoder.fc(maps[-1])
+        mu, logvar = self.encoder.mu(h), self.encoder.logvar(h)
+        residual = self.surface_decoder(maps, mu)
+        uz = self.anchor.read(x * self.depth_scale_mm, residual * self.scale_mm, self.moved)
+        pred = add_anchor(residual, uz / self.scale_mm[2])
+        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
+        lean = self.ood_decoder(mu) if self.ood_decoder is not None else None
+        return pred, self.image_decoder(z), mu, logvar, lean
+
+
+def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented: Callable | None = None):
+    """Step of the surface stage: weighted mesh MSE of the surface-anchored path (every free node 1,
+    + ``surface_weight`` on the sensing layer, + ``contact_weight`` on its nodes in contact) +
+    ``image_weight`` x the image VAE loss (augmented map in, clean map out). Metrics: ``mse`` (of
+    normalised displacements, all nodes and axes), ``contact_mse`` (per axis, sensing nodes in
+    contact), ``image_mse``."""
+
+    def step(m, idx, train):
+        t = sets[train]
+        x = t.depth[idx]
+        pred, recon, mu, logvar, lean = m(augmented(x) if train and augmented is not None else x, train)
+        err2 = ((pred - t.disp[idx]) ** 2 * mask).sum(-1)  # (B, n)
+        w = torch.ones_like(err2)
+        w[:, :n_plane] += stage.surface_weight
+        contact = t.contact[idx] if t.contact is not None else None
+        if contact is not None:
+            w[:, :n_plane] += stage.contact_weight * contact
+        mse = err2.mean() / 3
+        loss = (w * err2).mean() / 3
+        metrics = {"mse": mse.detach()}
+        if contact is not None:
+            metrics["contact_mse"] = ((err2[:, :n_plane] * contact).sum() / contact.sum().clamp(min=1) / 3).detach()
+        if stage.image_weight > 0:
+            image_loss, image_terms = vae_loss(x, recon, mu, logvar, stage.kl_weight)
+            loss = loss + stage.image_weight * image_loss
+            metrics["image_mse"] = image_terms["mse"]
+            if lean is not None:
+                lean_mse = torch.mean((lean - x) ** 2)
+                loss = loss + stage.image_weight * lean_mse
+                metrics["ood_image_mse"] = lean_mse.detach()
+        metrics["loss"] = loss.detach()
+        return loss, metrics
+
+    return step
 
 
 def _batches(n: int, batch: int, rng: np.random.Generator | None, n_batches: int | None = None):
@@ -147,6 +226,9 @@ def run_stage(
             opt.step()
             _accumulate(sums, metrics, len(idx))
             count += len(idx)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        train_seconds = time.perf_counter() - t0
         module.eval()
         vsums: dict[str, torch.Tensor] = {}
         vcount = 0
@@ -163,14 +245,22 @@ def run_stage(
         rec.update({f"val_{k}": vtot[i] / max(vtot[-1], 1) for i, k in enumerate(keys)})
         for part in ("train", "val"):
             rec[f"{part}_rmse_mm"] = float(np.sqrt(max(rec[f"{part}_mse"], 0.0))) * rmse_scale_mm
+            if f"{part}_contact_mse" in rec:  # per-node Euclidean RMS over the contact patch (training/metrics.py)
+                rec[f"{part}_contact_patch_rmse_um"] = float(np.sqrt(max(3 * rec[f"{part}_contact_mse"], 0.0))) * rmse_scale_mm * 1e3
+        elapsed = time.perf_counter() - t_stage
+        rec["stage_seconds"] = elapsed
+        rec["train_seconds"] = train_seconds
+        # training samples of all ranks per second of this rank's training loop (validation excluded)
+        rec["samples_per_s"] = float(tot[-1]) / train_seconds if train_seconds > 0 else None
         history.append(rec)
         sched.step()
-        elapsed = time.perf_counter() - t_stage
         # stop when one more epoch like the last would end past the budget
         over_budget = stage.time_budget_s is not None and elapsed + rec["seconds"] > stage.time_budget_s
         log(
             f"[{name}] epoch {epoch + 1}/{stage.epochs} train loss {rec['train_loss']:.4g} "
-            f"val loss {rec['val_loss']:.4g} val RMSE {rec['val_rmse_mm'] * 1e3:.2f} um ({rec['seconds']:.1f} s)"
+            f"val loss {rec['val_loss']:.4g} val RMSE {rec['val_rmse_mm'] * 1e3:.2f} um"
+            + (f", contact patch {rec['val_contact_patch_rmse_um']:.1f} um" if "val_contact_patch_rmse_um" in rec else "")
+            + f" ({rec['seconds']:.1f} s, {rec['samples_per_s']:.0f} samples/s)"
             + (f"; time budget of {stage.time_budget_s:g} s reached" if over_budget else "")
         )
         if dist.is_main:
@@ -259,10 +349,13 @@ def projection_step(sets: dict, decoder: torch.nn.Module, mask: torch.Tensor, la
 
 
 @torch.no_grad()
-def encode_latents(model: Predictor, tensors) -> None:
-    """Cache the frozen encoders' latents on each :class:`_Tensors`: z_image, z_mesh, z_mesh_logvar."""
+def encode_latents(model: Predictor, tensors, mesh: bool = True) -> None:
+    """Cache the frozen encoders' latents on each :class:`_Tensors`: z_image, and with ``mesh``
+    z_mesh, z_mesh_logvar."""
     for t in tensors:
         t.z_image = torch.cat([model.image_vae.encoder(t.depth[i])[0] for i in _batches(t.n, 256, None)])
+        if not mesh:
+            continue
         enc = [model.mesh_vae.encoder(t.disp[i]) for i in _batches(t.n, 256, None)]
         t.z_mesh = torch.cat([e[0] for e in enc])
         t.z_mesh_logvar = torch.cat([e[1] for e in enc])
@@ -389,21 +482,41 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
 
     # -- stage 1: image VAE ------------------------------------------------------------------
     hist = {}
-    hist["image_vae"] = run_stage(
-        "image_vae", model.image_vae, image_vae_step(sets, cfg.image_vae.kl_weight, augmented), tr.n, va.n, cfg.image_vae,
-        run_dir, dist, device, cfg.seed, log, scales.depth_scale_mm,
-    )
+    if cfg.image_vae is not None:
+        hist["image_vae"] = run_stage(
+            "image_vae", model.image_vae, image_vae_step(sets, cfg.image_vae.kl_weight, augmented), tr.n, va.n,
+            cfg.image_vae, run_dir, dist, device, cfg.seed, log, scales.depth_scale_mm,
+        )
+
+    # -- stage 1b (optional): image encoder + surface-anchored decoder end to end ------------
+    if cfg.surface is not None:
+        if tr.contact is None and cfg.surface.contact_weight > 0:
+            log("[surface] the data carry no contact masks: contact_weight is not applied")
+        trainer = SurfaceTrainer(model, ood=cfg.surface.train_ood_decoder and cfg.surface.image_weight > 0)
+        if not cfg.surface.train_encoder:
+            for p in model.image_vae.encoder.parameters():
+                p.requires_grad_(False)
+        if cfg.surface.image_weight == 0:  # the VAE's own heads are then unused
+            for p in [*model.image_vae.decoder.parameters(), *model.image_vae.encoder.logvar.parameters()]:
+                p.requires_grad_(False)
+        hist["surface"] = run_stage(
+            "surface", trainer, surface_step(sets, mask, model.anchor.m, cfg.surface, augmented), tr.n, va.n,
+            cfg.surface, run_dir, dist, device, cfg.seed, log, scale_mm,
+        )
+        _freeze(model.surface_decoder)
 
     # -- stage 2: mesh VAE -------------------------------------------------------------------
-    hist["mesh_vae"] = run_stage(
-        "mesh_vae", model.mesh_vae, mesh_vae_step(sets, mask, cfg.mesh_vae.kl_weight), tr.n, va.n, cfg.mesh_vae,
-        run_dir, dist, device, cfg.seed, log, scale_mm,
-    )
+    _freeze(model.image_vae)
+    if cfg.mesh_vae is not None:
+        model.image_vae.train(False)
+        hist["mesh_vae"] = run_stage(
+            "mesh_vae", model.mesh_vae, mesh_vae_step(sets, mask, cfg.mesh_vae.kl_weight), tr.n, va.n, cfg.mesh_vae,
+            run_dir, dist, device, cfg.seed, log, scale_mm,
+        )
 
     # -- VAEs frozen from here on ----------------------------------------------------------
-    _freeze(model.image_vae)
     _freeze(model.mesh_vae)
-    encode_latents(model, sets.values())
+    encode_latents(model, sets.values(), mesh=cfg.mesh_vae is not None)
 
     # -- stage 3 (optional): lean deployment decoder on the same latent space ---------------
     s4 = cfg.lean_decoder
@@ -446,15 +559,18 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
 
     # -- stage 4: latent projection through the frozen mesh decoder -------------------------
     latents = image_latents(sets, model.image_vae.encoder, augmented)
-    hist["projection"] = run_stage(
-        "projection", model.projection,
-        projection_step(sets, model.mesh_vae.decoder, mask, cfg.projection.latent_weight, latents),
-        tr.n, va.n, cfg.projection, run_dir, dist, device, cfg.seed, log, scale_mm,
-    )
+    if cfg.projection is not None:
+        hist["projection"] = run_stage(
+            "projection", model.projection,
+            projection_step(sets, model.mesh_vae.decoder, mask, cfg.projection.latent_weight, latents),
+            tr.n, va.n, cfg.projection, run_dir, dist, device, cfg.seed, log, scale_mm,
+        )
 
     # -- evaluation, OOD calibration ---------------------------------------------------------
     model.eval()
-    decoders = ("coma", "lean") if s4 is not None else ("coma",)
+    decoders = (("coma", "lean") if s4 is not None else ("coma",)) if cfg.projection is not None else ()
+    if cfg.surface is not None:
+        decoders = decoders + ("surface",)
     n_eval = len(val_data) if cfg.eval_max_samples is None else min(len(val_data), cfg.eval_max_samples)
     val_eval = val_data.subset(np.arange(n_eval))
     train_probe = train_data.subset(np.arange(min(len(train_data), n_eval)))
@@ -494,8 +610,8 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             "train": evaluate(model, train_probe, device),
             "note": "after finetune (projection + lean decoder end to end)",
         }
-    model.deploy_decoder = "coma"
-    metrics.update(metrics["decoders"]["coma"]["heldout"])
+    model.deploy_decoder = "surface" if cfg.surface is not None else "coma"
+    metrics.update(metrics["decoders"][model.deploy_decoder]["heldout"])
     metrics["scales"] = asdict(scales)
     metrics["data"] = {"train": train_data.summary(), "val": val_data.summary()}
     log(
@@ -519,6 +635,7 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         write_npz(
             run_dir / "heldout.npz", depth_mm=val_data.depth_mm[:n_keep],
             displacement_mm=val_data.displacement_mm[:n_keep], indenter=val_data.indenter[:n_keep],
+            **({} if val_data.contact_mask is None else {"contact_mask": val_data.contact_mask[:n_keep]}),
         )
         write_json(run_dir / "metrics.json", metrics)
         write_text(run_dir / "history.json", json.dumps(hist, indent=1))
@@ -550,19 +667,24 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
     ood / ood_lean: quantiles of the reconstruction RMSE (mm) on these in-distribution maps, by
     the image VAE's decoder / the lean image decoder (the deployed ood_score).
     """
+    from training.metrics import mesh_metrics
+
     model.eval()
     err2 = true2 = rec_err2 = 0.0
     max_err = 0.0
-    recon, recon_lean = [], []
+    recon, recon_lean, preds = [], [], []
     n = 0
+    coma_trained = model.deploy_decoder in ("coma", "lean")
     for i in range(0, len(data), batch):
         depth = torch.as_tensor(data.depth_mm[i : i + batch, None]).to(device)
         true = torch.as_tensor(data.displacement_mm[i : i + batch]).to(device)
         _, disp = model(depth)
+        preds.append(disp.cpu().numpy())
         e = (disp - true).double()
-        z_true = model.mesh_vae.encoder(model.norm.normalise_displacement(true))[0]
-        er = (model.decode_displacement(z_true) - true).double()
-        rec_err2 = rec_err2 + float((er**2).sum())
+        if coma_trained:
+            z_true = model.mesh_vae.encoder(model.norm.normalise_displacement(true))[0]
+            er = (model.decode_displacement(z_true) - true).double()
+            rec_err2 = rec_err2 + float((er**2).sum())
         err2 += float((e**2).sum())
         true2 += float((true.double() ** 2).sum())
         max_err = max(max_err, float(e.norm(dim=-1).max()))
@@ -571,13 +693,13 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
         n += e.numel()
     rec = np.concatenate(recon)
     rec_lean = np.concatenate(recon_lean)
-    return {
+    n_plane = model.n_plane
+    out = {
         "n_samples": len(data),
         "vertex_rmse_mm": float(np.sqrt(err2 / n)),
         "relative_error": float(np.sqrt(err2 / true2)),
         "max_error_mm": max_err,
-        "mesh_reconstruction_rmse_mm": float(np.sqrt(rec_err2 / n)),
-        "mesh_reconstruction_relative_error": float(np.sqrt(rec_err2 / true2)),
+        "mesh_metrics": mesh_metrics(np.concatenate(preds), data.displacement_mm, data.contact_mask, n_plane),
         "ood": {
             "recon_rmse_mm_p50": float(np.quantile(rec, 0.5)),
             "recon_rmse_mm_p95": float(np.quantile(rec, 0.95)),
@@ -590,7 +712,11 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
             "recon_rmse_mm_p99": float(np.quantile(rec_lean, 0.99)),
             "recon_rmse_mm_max": float(rec_lean.max()),
         },
-    }
+    } | ({
+        "mesh_reconstruction_rmse_mm": float(np.sqrt(rec_err2 / n)),
+        "mesh_reconstruction_relative_error": float(np.sqrt(rec_err2 / true2)),
+    } if coma_trained else {})
+    return out
 
 
 def plot_curves(history: dict, path: Path) -> None:
@@ -608,7 +734,7 @@ def plot_curves(history: dict, path: Path) -> None:
         ax.semilogy(ep, [h["val_rmse_mm"] for h in hist], label="held-out")
         ax.set_title(name)
         ax.set_xlabel("epoch")
-        ax.set_ylabel("RMSE, mm" + (" (depth)" if name == "image_vae" else " (displacement)"))
+        ax.set_ylabel("RMSE, mm" + (" (depth)" if name in ("image_vae", "ood_decoder") else " (displacement)"))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
@@ -638,6 +764,57 @@ def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]
             f"{path} was trained on pad mesh {bundle['mesh_hash'][:12]}..., the shipped pad is "
             f"{model.mesh_vae.graphs.hierarchy.mesh_hash[:12]}...; retrain for this pad"
         )
-    model.load_state_dict(bundle["state_dict"])
+    state = bundle["state_dict"]
+    if "slim" in bundle:  # weights of the trained modules only, maybe in a narrower float type
+        state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        kept = trained_prefixes(cfg)
+        wrong = [k for k in missing if k.startswith(kept)] + list(unexpected)
+        if wrong:
+            raise UsageError(f"{path}: a slim bundle that does not match its config ({len(wrong)} tensors missing or "
+                             f"unexpected, e.g. {wrong[0]}); make it again (python -m training slim-bundle)")
+    else:
+        model.load_state_dict(state)
     model.eval()
     return model, bundle
+
+
+def trained_prefixes(cfg: TrainConfig) -> tuple[str, ...]:
+    """State-dict prefixes of the modules ``cfg`` trains (and the data scales, ``norm.``)."""
+    out = ["norm.", "image_vae."]
+    if cfg.surface is not None:
+        out.append("surface_decoder.")
+    if cfg.ood_decoder is not None:
+        out.append("ood_decoder.")
+    if cfg.mesh_vae is not None:
+        out.append("mesh_vae.")
+    if cfg.lean_decoder is not None:
+        out.append("lean_decoder.")
+    if cfg.projection is not None:
+        out.append("projection.")
+    return tuple(out)
+
+
+def slim_bundle(src: str | Path, out: str | Path, dtype: str = "float16") -> dict:
+    """Write the bundle ``src`` keeping only the weights of the modules its config trains, those
+    (not the data scales and rest mesh, ``norm.``) stored as ``dtype``; returns its summary. A model
+    loaded from it computes with the rounded weights in float32: export from it, so that graph and
+    bundle agree."""
+    if dtype not in ("float16", "float32"):
+        raise UsageError(f"--dtype must be float16 or float32, got {dtype!r}")
+    model, bundle = load_bundle(src)
+    cfg = TrainConfig.model_validate(bundle["config"])
+    keep = trained_prefixes(cfg)
+    torch_dtype = getattr(torch, dtype)
+    state = {k: (v.to(torch_dtype) if v.is_floating_point() and not k.startswith("norm.") else v).clone()
+             for k, v in model.state_dict().items() if k.startswith(keep)}
+    import hashlib
+
+    slim = dict(bundle)
+    slim["state_dict"] = state
+    slim["slim"] = {"dtype": dtype, "modules": list(keep),
+                    "source_sha256": hashlib.sha256(Path(src).read_bytes()).hexdigest()}
+    with atomic_path(Path(out)) as tmp:
+        torch.save(slim, tmp)
+    n = sum(v.numel() for v in state.values())
+    return {"tensors": len(state), "numbers": int(n), "bytes": Path(out).stat().st_size, "dtype": dtype}

@@ -7,9 +7,9 @@ bottom; one module per concept:
 ==================  ======================================================================
 measured            matched data: depth maps or frames with their contacts (.npz / folder)
 reproduce           contacts reproduced by the sensor model and its variants; estimation
-candidates          the library of candidate effects (10) and how each is fitted
-view_warp           optics effects seen in depth maps made through the calibrated camera
+candidates          the library of candidate effects and how each is fitted
 tables              each candidate's tabulated changes of each contact's map
+refine              a candidate's table re-centred on its fit until the fit settles
 noise               pixel noise of the maps
 fingerprint         summaries of the residual that separate effects
 selection           fits, held-out gains by contact, BIC, effect-free null, bootstrap

@@ -22,8 +22,13 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, ValidationError
 
 from tactile_deploy.atomic import write_json, write_text
+from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.jsonfile import validation_error_text
 from tactile_deploy.sensors.config import (
     EffectSpec,
     SensorConfigError,
@@ -32,6 +37,27 @@ from tactile_deploy.sensors.config import (
 )
 
 HISTORY_FORMAT = 1
+
+
+class ModelVersion(StrictModel):
+    """One version of a sensor model in its history."""
+
+    version: int = Field(ge=1, description="Version number (the file's, vN.json).")
+    file: str = Field(description="The version's file, relative to the versions folder.")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="SHA-256 of the file's text.")
+    created: str = Field(description="When it was written, ISO 8601 UTC.")
+    change: str = Field(description="What changed (the effect added and its parameters).")
+    reason: dict[str, Any] | None = Field(None, description="Why: the discrepancy verdict's "
+                                          "numbers and the measured data (path, SHA-256).")
+
+
+class SensorModelHistory(StrictModel):
+    """``<model>.versions/history.json``: every version of a sensor model, oldest first."""
+
+    format_version: Literal[1] = HISTORY_FORMAT
+    sensor: str = Field(description="The sensor model's name.")
+    current: str = Field(description="The current model's file name (beside the folder).")
+    versions: list[ModelVersion]
 
 
 @dataclass(frozen=True)
@@ -60,19 +86,17 @@ def _history(history_path: Path) -> list[dict]:
     """The version entries of ``history_path`` ([] when it does not exist)."""
     if not history_path.exists():
         return []
+    advice = ("restore it, or move it away to start a new history (the version files beside it "
+              "are kept; new versions take the next free numbers)")
     try:
-        history = json.loads(history_path.read_text(encoding="utf-8"))
-        entries = history["versions"]
-        if not all(isinstance(e, dict) and isinstance(e.get("version"), int)
-                   and isinstance(e.get("file"), str) and isinstance(e.get("sha256"), str)
-                   for e in entries):
-            raise ValueError("every entry of 'versions' needs version (int), file and sha256")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError,
-            ValueError) as e:
-        raise SensorConfigError(f"{history_path}: not a version history ({e}); restore it, or "
-                                "move it away to start a new history (the version files beside "
-                                "it are kept; new versions take the next free numbers)") from None
-    return entries
+        doc = json.loads(history_path.read_text(encoding="utf-8"))
+        history = SensorModelHistory.model_validate(doc)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise SensorConfigError(f"{history_path}: not a version history ({e}); {advice}") from None
+    except ValidationError as e:
+        raise SensorConfigError(validation_error_text(history_path, e, "version history", advice)
+                                ) from None
+    return [v.model_dump() for v in history.versions]
 
 
 def _next_version(versions: Path, entries: list[dict]) -> int:
@@ -140,7 +164,8 @@ def apply_effect(sensor: str, config: VirtualSensorConfig, spec: EffectSpec, rea
     write_text(versions / name, new_text)
     entries.append({"version": k, "file": name, "sha256": _sha256(new_text), "created": now,
                     "change": f"effect {spec.name} {json.dumps(spec.params)}", "reason": reason})
-    write_json(history_path, {"format_version": HISTORY_FORMAT, "sensor": config.name,
-                              "current": target.name, "versions": entries})
+    history = SensorModelHistory(sensor=config.name, current=target.name,
+                                 versions=[ModelVersion.model_validate(e) for e in entries])
+    write_json(history_path, history.model_dump(mode="json"))
     write_text(target, new_text)
     return AppliedModel(target, k, previous, history_path)

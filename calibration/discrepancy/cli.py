@@ -16,7 +16,9 @@ import typer
 
 def discrepancy_command(
     sensor: str = typer.Option(..., help="Sensor model: a shipped virtual sensor's name "
-                               "(gelslim1, gelslim2, gelsight_fots) or a model JSON path."),
+                               "(gelslim1, gelslim2, gelsight_fots), a model JSON path, or a "
+                               "calibrated unit's plugin (name or folder) holding "
+                               "sensor_model.json."),
     measured: Path = typer.Option(..., help="Measured data: an .npz file or a folder with "
                                   "contacts.csv (docs/discrepancy.md)."),
     report: Path | None = typer.Option(None, help="Write report.md, verdict.json and figures "
@@ -29,7 +31,8 @@ def discrepancy_command(
     model_dir: Path | None = typer.Option(None, help="Where --apply puts the model of a shipped "
                                           "sensor (NAME.json; default: the current folder)."),
     plugin: str | None = typer.Option(None, help="Sensor plugin whose imaging pipeline turns "
-                                      "measured frames into depth (default: the sensor's name)."),
+                                      "measured frames into depth (default: the unit's plugin "
+                                      "given as --sensor, else the sensor's name)."),
     candidates: str | None = typer.Option(None, help="Comma-separated candidates to consider "
                                           "(default: the whole library)."),
     folds: int = typer.Option(5, min=2, help="Folds of the cross-validation by contact."),
@@ -51,14 +54,18 @@ def discrepancy_command(
     from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
     from tactile_deploy.outputs import OutputPathError
     from tactile_deploy.cli.common import err_console, fail, prepare_simulator, progress_bar
-    from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
+    from calibration.discrepancy.sensor_model import SensorModelError, resolve_sensor
+    from tactile_deploy.sensors.catalog import UnknownSensorError
     from tactile_deploy.sensors.config import SensorConfigError
     from tactile_deploy.sensors.virtual import VirtualSensor
 
     try:
-        config = sensor_config(sensor)
-    except (UnknownSensorError, SensorConfigError, FileNotFoundError) as e:
+        resolved = resolve_sensor(sensor)
+    except (UnknownSensorError, SensorConfigError, SensorModelError, FileNotFoundError) as e:
         fail(str(e))
+    config = resolved.config
+    sensor = resolved.model_ref
+    plugin = plugin or resolved.plugin
     names = None
     if candidates:
         names = tuple(n.strip() for n in candidates.split(",") if n.strip())

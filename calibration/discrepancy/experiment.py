@@ -33,10 +33,9 @@ def probe_contacts(reach_mm: float) -> list[tuple[str, ContactPose]]:
 
 
 def distinguishing_experiment(repro: ContactReproducer, specs: dict[str, EffectSpec],
-                              view_warps: dict, sigma_mm: float) -> dict:
+                              sigma_mm: float) -> dict:
     """The probe that best separates the candidates ``specs`` (name -> fitted effect).
 
-    view_warps : name -> ViewWarp for candidates simulated through the view (None otherwise).
     Returns {"indenter", "x_mm", "y_mm", "depth_mm", "rms_difference_mm", "noise_units",
     "forces_n": {name: N}, "text"}.
     """
@@ -47,13 +46,8 @@ def distinguishing_experiment(repro: ContactReproducer, specs: dict[str, EffectS
     for name, pose in probe_contacts(reach):
         maps, forces = {}, {}
         try:
-            base, base_force = repro.depth_map(name, pose)
             for cand, spec in specs.items():
-                warp = view_warps.get(cand)
-                if warp is not None:
-                    maps[cand], forces[cand] = warp(base), base_force
-                else:
-                    maps[cand], forces[cand] = repro.depth_map(name, pose, repro.variant(spec))
+                maps[cand], forces[cand] = repro.depth_map(name, pose, repro.variant(spec))
         except (ValueError, RuntimeError):
             continue
         diffs = [float(np.sqrt(np.mean((maps[a] - maps[b])[mask] ** 2)))

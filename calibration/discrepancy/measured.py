@@ -202,6 +202,11 @@ def save_measured(path: str | os.PathLike, data: MeasuredData) -> None:
     """Write ``data`` as the .npz layout (atomic)."""
     from tactile_deploy.atomic import write_npz
 
+    write_npz(path, **measured_arrays(data))
+
+
+def measured_arrays(data: MeasuredData) -> dict[str, np.ndarray]:
+    """The arrays of the .npz layout of ``data``."""
     arrays = {"indenter": np.array(data.indenter, dtype=str), "x_mm": data.x_mm,
               "y_mm": data.y_mm, "theta_deg": data.theta_deg, "depth_mm": data.depth_cmd_mm,
               "force_n": data.force_n, "contact_id": data.contact_id}
@@ -211,7 +216,7 @@ def save_measured(path: str | os.PathLike, data: MeasuredData) -> None:
         arrays["frames"] = data.frames
     if data.noise_mm is not None:
         arrays["noise_mm"] = np.float64(data.noise_mm)
-    write_npz(path, **arrays)
+    return arrays
 
 
 def measured_sha256(path: str | os.PathLike) -> str:

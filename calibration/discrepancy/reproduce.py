@@ -8,22 +8,51 @@ or changed. Contacts that were not commanded (or not recorded) are estimated fro
 :mod:`calibration.fem_fit.fit`: the maximum-displacement region, then least squares on the depth
 gap.
 
-With measured RGB frames the reproducer carries a :class:`~calibration.discrepancy.imaging.
-FrameImaging`: its maps are then the model's frames through the same imaging pipeline (the
-*imaged* maps), and :meth:`ContactReproducer.surface_map` still gives the FEM's surface.
+Depth maps are what the sensor's calibrated depth pipeline reports
+(:mod:`tactile_deploy.sensors.depth_view`): the FEM's surface seen through the view of the
+model's optics effects, then its read-out effects. With measured RGB frames the reproducer
+carries a :class:`~calibration.discrepancy.imaging.FrameImaging`: its maps are then the model's
+frames through the same imaging pipeline (the *imaged* maps), then the read-out effects, and
+:meth:`ContactReproducer.surface_map` still gives the FEM's surface.
+
+The FEM's solutions are cached by the model's mechanics (geometry, contact and material effects)
+and the imaged maps by everything that changes a frame: a variant that differs only in its
+view or read-out reuses them (a few ms instead of a solve).
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from collections import OrderedDict
 
 import numpy as np
 from scipy import ndimage, optimize
 
 from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.sensors.config import EffectSpec
+from tactile_deploy.sensors.depth_view import DepthReadout
+from tactile_deploy.sensors.effects import effect_class, get_effect
 from tactile_deploy.sensors.virtual import VirtualSensor
+
+#: Stages of the effects that change the FEM's solution, and those that change a frame.
+MECHANICAL_STAGES = ("geometry", "contact", "material")
+READOUT_STAGE = "readout"
+#: Cached FEM maps and imaged maps per reproducer (a contact's tabulation reuses them).
+CACHE_SIZE = 64
+
+
+def depth_effects(sensor: VirtualSensor) -> list:
+    """The effects behind a sensor's depth maps (a depth-map variant keeps its view effects
+    apart from the sensor that solves its mechanics: ``depth_effects``)."""
+    return getattr(sensor, "depth_effects", sensor.effects)
+
+
+def _effects_key(sensor: VirtualSensor, keep) -> tuple:
+    """The sensor's material and the effects whose stage ``keep(stage)`` accepts, hashable."""
+    fx = tuple((e.name, tuple(sorted(e.params.model_dump().items())))
+               for e in depth_effects(sensor) if keep(e.stage) and not e.is_null)
+    return (sensor.config.material.model_dump_json(), sensor.config.pad, fx)
 
 #: Largest change of a round indenter's intrusion when it turns (the facets of meshed
 #: spheres and punches), mm, and the share of footprint points whose contact may change.
@@ -82,6 +111,8 @@ class ContactReproducer:
         self.imaging = imaging
         self._indenters: dict[str, CachedIndenter] = {}
         self._variants: dict[str, VirtualSensor] = {}
+        self._maps: OrderedDict = OrderedDict()
+        self._readouts: dict = {}
         from tactile_deploy.camera.depth import DepthCamera
 
         self.camera = DepthCamera()
@@ -96,7 +127,10 @@ class ContactReproducer:
 
     def variant(self, spec: EffectSpec | None) -> VirtualSensor:
         """The sensor with ``spec`` added, or replacing its effect of the same name (None: the
-        sensor itself). Variants share the sensor's simulator."""
+        sensor itself). Variants share the sensor's simulator. Without an imaging path the
+        variant's view effects stay out of its optics (``depth_effects`` holds them): its depth
+        maps see them through the view, and a value whose frames could not be rendered (a
+        distortion not invertible over the image) is still a valid view."""
         if spec is None:
             return self.sensor
         key = f"{spec.name}:{sorted(spec.params.items())}"
@@ -105,25 +139,73 @@ class ContactReproducer:
                 self._variants.clear()
             cfg = self.sensor.config
             effects = [e for e in cfg.effects if e.name != spec.name] + [spec]
-            self._variants[key] = VirtualSensor(cfg.model_copy(update={"effects": tuple(effects)}),
-                                                simulator=self.sensor.simulator)
+            if self.imaging is None:
+                solved = tuple(e for e in effects if not effect_class(e.name).moves_view)
+                v = VirtualSensor(cfg.model_copy(update={"effects": solved}),
+                                  simulator=self.sensor.simulator)
+                v.depth_effects = [get_effect(e.name, e.params) for e in effects]
+            else:
+                v = VirtualSensor(cfg.model_copy(update={"effects": tuple(effects)}),
+                                  simulator=self.sensor.simulator)
+            self._variants[key] = v
         return self._variants[key]
+
+    def readout(self, sensor: VirtualSensor) -> DepthReadout:
+        """The sensor's depth read-out: view and read-out effects for FEM maps, read-out effects
+        alone for imaged maps (their frames went through the sensor's optics)."""
+        key = (_effects_key(sensor, lambda st: st not in MECHANICAL_STAGES),
+               self.imaging is None)
+        if key not in self._readouts:
+            if len(self._readouts) > 64:
+                self._readouts.clear()
+            self._readouts[key] = DepthReadout(depth_effects(sensor),
+                                               sensor.config.optics.camera,
+                                               view=self.imaging is None)
+        return self._readouts[key]
+
+    def _cached(self, key, make):
+        hit = self._maps.get(key)
+        if hit is None:
+            hit = make()
+            self._maps[key] = hit
+            if len(self._maps) > CACHE_SIZE:
+                self._maps.popitem(last=False)
+        else:
+            self._maps.move_to_end(key)
+        return hit
 
     def depth_map(self, indenter: str, pose: ContactPose, sensor: VirtualSensor | None = None,
                   noise_pose: ContactPose | None = None) -> tuple[np.ndarray, float]:
-        """``(depth (128, 128) float64 mm, force N)`` of ``indenter`` at ``pose``: the imaged
-        map with an imaging path (its noise draws those of ``noise_pose``, default ``pose``:
-        maps of nearby poses compared with each other share them), else the FEM's surface."""
+        """``(depth (128, 128) float64 mm, force N)`` of ``indenter`` at ``pose`` as the sensor
+        reports it: the imaged map with an imaging path (its noise draws those of
+        ``noise_pose``, default ``pose``: maps of nearby poses compared with each other share
+        them), else the FEM's surface through the view; then the read-out effects."""
+        sensor = sensor or self.sensor
+        readout = self.readout(sensor)
         if self.imaging is not None:
-            return self.imaging.depth_map(sensor or self.sensor, self.indenter(indenter),
-                                          indenter, pose, noise_pose)
-        return self.surface_map(indenter, pose, sensor)
+            key = ("imaged", _effects_key(sensor, lambda st: st != READOUT_STAGE), indenter,
+                   _pose_key(pose), _pose_key(noise_pose or pose))
+            depth, force = self._cached(key, lambda: self.imaging.depth_map(
+                sensor, self.indenter(indenter), indenter, pose, noise_pose))
+        else:
+            depth, force = self.surface_map(indenter, pose, sensor)
+        if readout.is_identity:
+            return depth.copy(), force
+        return readout(depth), force
 
     def surface_map(self, indenter: str, pose: ContactPose,
                     sensor: VirtualSensor | None = None) -> tuple[np.ndarray, float]:
         """``(depth (128, 128) float64 mm, force N)``: the FEM's surface (the depth-map truth)."""
-        depth, force = (sensor or self.sensor).depth_map(self.indenter(indenter), pose)
-        return depth.astype(np.float64), force
+        sensor = sensor or self.sensor
+        key = ("fem", _effects_key(sensor, lambda st: st in MECHANICAL_STAGES), indenter,
+               _pose_key(pose))
+
+        def solve():
+            depth, force = sensor.depth_map(self.indenter(indenter), pose)
+            return depth.astype(np.float64), force
+
+        depth, force = self._cached(key, solve)
+        return depth.copy(), force
 
     def noise_maps(self, indenter: str, pose: ContactPose, mean_map: np.ndarray) -> np.ndarray:
         """(J, 128, 128) float32 mm noise realisations of the model's imaged map of the contact
@@ -225,6 +307,10 @@ class ContactReproducer:
             b = self.depth_map(indenter, hi, noise_pose=pose)[0].ravel()[pixels]
             cols.append((b - a) / (2.0 * h2))
         return np.stack(cols, axis=1)
+
+
+def _pose_key(pose: ContactPose) -> tuple:
+    return (pose.x_mm, pose.y_mm, pose.theta_deg, pose.depth_mm)
 
 
 def contact_radius_mm(depth_mm: np.ndarray, pitch_mm: float = 35.0 / 128) -> float:

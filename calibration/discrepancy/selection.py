@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize
 
 from calibration.discrepancy.noise import NoiseEstimate
 from calibration.discrepancy.tables import CandidateTable, ResponseTables
@@ -112,35 +111,54 @@ def sufficient_stats(tables: ResponseTables, measured_mm: np.ndarray, sample_con
 
 
 # ------------------------------------------------------------------------------- fitting
+#: Points per coordinate of the grid a fit starts from, and of each zoomed grid of the polish
+#: (a box of one grid step either side of the best point, halved ZOOM_ROUNDS times).
+GRID_POINTS = {1: 241, 2: 31, 3: 13, 4: 9}
+ZOOM_POINTS = {1: 9, 2: 7, 3: 5}
+ZOOM_ROUNDS = 10
+
+
 class TableFit:
     """Fits of one candidate on summed statistics: the coordinates that most reduce the squared
-    residual, ``max_phi 2 w(phi).b - w(phi)^T A w(phi)``, inside the candidate's fit range."""
+    residual, ``max_phi 2 w(phi).b - w(phi)^T A w(phi)``, inside the candidate's fit range: a
+    grid, then zoomed grids around its best point (vectorised; no per-point Python calls)."""
 
     def __init__(self, table: CandidateTable, grid_points: int | None = None):
         self.table = table
         p = len(table.axes)
-        g = grid_points or (241 if p == 1 else 31)
+        g = grid_points or GRID_POINTS.get(p, 7)
         axes = [np.linspace(lo, hi, g) for lo, hi in table.bounds]
         self.grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(p, -1).T
         self.grid_w = table.weights(self.grid)
+        self._lo = np.array([b[0] for b in table.bounds])
+        self._hi = np.array([b[1] for b in table.bounds])
+        self._step = (self._hi - self._lo) / max(g - 1, 1)
+        z = ZOOM_POINTS.get(p, 3)
+        unit = np.linspace(-1.0, 1.0, z)
+        self._zoom = np.array(np.meshgrid(*[unit] * p, indexing="ij")).reshape(p, -1).T
 
     def reduction(self, coords, A, b) -> float:
         w = self.table.weights(coords)[0]
         return float(2.0 * w @ b - w @ A @ w)
 
+    def _reductions(self, W, A, b) -> np.ndarray:
+        return 2.0 * W @ b - np.einsum("gi,ij,gj->g", W, A, W)
+
     def fit(self, A, b, polish: bool = True) -> tuple[np.ndarray, float]:
-        W = self.grid_w
-        red = 2.0 * W @ b - np.einsum("gi,ij,gj->g", W, A, W)
+        red = self._reductions(self.grid_w, A, b)
         k = int(np.argmax(red))
-        best = self.grid[k]
+        best, best_red = self.grid[k], float(red[k])
         if not polish:
-            return best, float(red[k])
-        bounds = self.table.bounds
-        res = optimize.minimize(lambda x: -self.reduction(x, A, b), best, method="L-BFGS-B",
-                                bounds=bounds, options={"maxiter": 50})
-        if -res.fun > red[k]:
-            return np.asarray(res.x), float(-res.fun)
-        return best, float(red[k])
+            return best, best_red
+        step = self._step.copy()
+        for _ in range(ZOOM_ROUNDS):
+            pts = np.clip(best[None, :] + self._zoom * step[None, :], self._lo, self._hi)
+            r = self._reductions(self.table.weights(pts), A, b)
+            j = int(np.argmax(r))
+            if r[j] > best_red:
+                best, best_red = pts[j], float(r[j])
+            step = 0.5 * step
+        return np.asarray(best, np.float64), best_red
 
 
 @dataclass
@@ -186,6 +204,17 @@ class Selection:
             if c.name == name:
                 return c
         raise KeyError(name)
+
+
+def excess_energy(stats: SufficientStats, noise: NoiseEstimate) -> tuple[float, float, float]:
+    """``(excess, z, pixels)``: the residual's energy over the noise's, minus 1, on the
+    contacts' regions (nuisance projected out), its z-score from the noise's sampling and the
+    sigma estimate's uncertainty, and the degrees of freedom it is counted over."""
+    n_pix = float(stats.dof.sum())
+    excess = float(stats.energy.sum()) / (noise.sigma_mm**2 * n_pix) - 1.0
+    sd = math.sqrt(2.0 * noise.energy_factor / max(n_pix, 1.0)
+                   + (2.0 * noise.se_mm / noise.sigma_mm) ** 2)
+    return excess, excess / sd, n_pix
 
 
 def contact_folds(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
@@ -261,10 +290,7 @@ def select_effect(tables: ResponseTables, stats: SufficientStats, noise: NoiseEs
                                float(np.quantile(boot[:, j], 0.975)))
             r.best_frequency = float(np.mean(winner == j))
     energy = float(stats.energy.sum())
-    excess = energy / (sigma2 * n_pix) - 1.0
-    sd = math.sqrt(2.0 * noise.energy_factor / max(n_pix, 1.0)
-                   + (2.0 * noise.se_mm / noise.sigma_mm) ** 2)
-    excess_z = excess / sd
+    excess, excess_z, _ = excess_energy(stats, noise)
     structure = bool(excess_z > STRUCTURE_Z and excess > STRUCTURE_MIN_EXCESS)
     for nm in names:
         r = results[nm]
@@ -346,11 +372,12 @@ def _intervals(tables, stats, result: CandidateStats, fitter: TableFit, counts, 
             continue
         phi, _ = fitter.fit(np.einsum("n,nij->ij", w, A_all), w @ b_all)
         draws.append(t.params(phi))
-    for key in t.candidate.fitted_params:
+    for key in t.fitted_params:
         value = result.params[key]
         vals = np.array([d[key] for d in draws])
-        if key == "azimuth_deg":  # circular: unwrap around the estimate
-            vals = value + (vals - value + 180.0) % 360.0 - 180.0
+        period = {"azimuth_deg": 360.0, "axis_deg": 180.0}.get(key)
+        if period:  # circular: unwrap around the estimate
+            vals = value + (vals - value + period / 2) % period - period / 2
         result.intervals[key] = (float(np.quantile(vals, 0.025)),
                                  float(np.quantile(vals, 0.975)))
 

@@ -1,7 +1,9 @@
 """Measured data with hidden effects, made by virtual sensors (tests, benchmark, documentation).
 
-A virtual sensor with one or more effects switched on presses a list of contacts; its depth-map
-truth (:meth:`VirtualSensor.depth_map`) plus white Gaussian pixel noise on the pad, and its force
+A virtual sensor with one or more effects switched on presses a list of contacts; its depth map
+as its calibrated pipeline reports it (:mod:`tactile_deploy.sensors.depth_view`: the FEM's
+surface through the view of its optics effects, then its read-out effects) plus white Gaussian
+pixel noise on the pad, and its force
 plus relative force noise, are the "measured" data; the commanded contacts are stored as the rig
 would record them. The effect's parameters are drawn at random from its realistic range
 (``realistic_range`` of the effect), away from the null value: a magnitude between
@@ -96,6 +98,9 @@ def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contact
 
     mesh = sensor.simulator.mesh
     mask = DepthCamera().render(mesh, mesh.vertices).mask
+    from tactile_deploy.sensors.depth_view import DepthReadout
+
+    readout = DepthReadout.of_sensor(hidden)
     indenters = {}
     depth, images, force = [], [], []
     for name, pose in contacts:
@@ -107,6 +112,7 @@ def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contact
             f = shot.force_n
         else:
             d, f = hidden.depth_map(indenters[name], pose)
+            d = readout(d)
             depth.append(np.where(mask, d + rng.normal(0.0, noise_mm, d.shape), 0.0))
         force.append(f * (1.0 + force_noise_rel * rng.standard_normal()))
     n = len(contacts)

@@ -19,23 +19,19 @@ from __future__ import annotations
 import json
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from tactile_deploy.atomic import finite_or_null
+from tactile_deploy.fileformat import StrictModel
 
 FORMAT_VERSION = 2
-
-_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-
 
 #: ``obj`` with every non-finite float replaced by None (JSON has no NaN).
 finite = finite_or_null
 
 
-class CandidateReport(BaseModel):
+class CandidateReport(StrictModel):
     """One candidate's numbers."""
-
-    model_config = _STRICT
 
     name: str = Field(description="Registered effect name.")
     kind: str = Field(description="mechanical or optical.")
@@ -58,10 +54,9 @@ class CandidateReport(BaseModel):
                               "above 0.")
 
 
-class DiscrepancyVerdict(BaseModel):
-    """What is missing from a sensor model, from measured contacts."""
-
-    model_config = _STRICT
+class DiscrepancyVerdict(StrictModel):
+    """What is missing from a sensor model, from measured contacts (``verdict.json`` of
+    ``tactile-deploy discrepancy --report DIR``, and its ``--json`` output)."""
 
     format_version: Literal[2] = FORMAT_VERSION
     verdict: Literal["effect", "none", "unexplained", "ambiguous"]

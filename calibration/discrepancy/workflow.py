@@ -9,9 +9,11 @@ Data flow of :func:`find_discrepancy`::
          imaging.py)
       -> pixel noise from the residual's Laplacian, the realisations, or as given  (noise.py)
       -> residual fingerprint                                         (fingerprint.py)
+      -> candidates that explain a good part of the gap: their tables re-centred on their
+         fits until the fits settle (any magnitude within the effect's bounds)   (refine.py)
       -> fits, held-out gains by contact, BIC, effect-free null, bootstrap     (selection.py)
-      -> the best candidate tabulated again around its fit, then re-simulated exactly on
-         held-out contacts: gap before -> after                       (verify_effect)
+      -> the best candidate refined further, then re-simulated exactly on held-out contacts:
+         gap before -> after                                          (verify_effect)
       -> look-alikes: the experiment that tells them apart            (experiment.py)
       -> verdict: effect / ambiguous / unexplained / none             (verdict.py)
 """
@@ -37,24 +39,23 @@ from calibration.discrepancy.noise import (
     known_noise,
     noise_from_realisations,
 )
+from calibration.discrepancy.refine import fit_stats, refine_table
 from calibration.discrepancy.reproduce import ContactReproducer
 from calibration.discrepancy.selection import (
     STRUCTURE_MIN_EXCESS,
     STRUCTURE_Z,
     Selection,
     TableFit,
+    excess_energy,
     select_effect,
     sufficient_stats,
 )
 from calibration.discrepancy.tables import (
-    CandidateTable,
     Contact,
     ResponseTables,
-    refine_table,
     tabulate,
 )
 from calibration.discrepancy.verdict import CandidateReport, DiscrepancyVerdict, finite
-from calibration.discrepancy.view_warp import ViewWarp
 from tactile_deploy.sensors.config import EffectSpec
 from tactile_deploy.sensors.virtual import VirtualSensor
 
@@ -62,6 +63,19 @@ from tactile_deploy.sensors.virtual import VirtualSensor
 #: (held-out, exact), or that it removes together with a second candidate (tables): below it
 #: the structure is reported as unexplained. 0.75 = the systematic gap halved.
 EXPLAIN_MIN = 0.75
+#: Before the selection, candidates whose all-sample fit removes at least this share of the
+#: residual's excess energy are refined (at most REFINE_CANDIDATES of them, the best first; a
+#: candidate with large-deformation solves only when it is the best).
+REFINE_MIN_SHARE = 0.2
+REFINE_CANDIDATES = 4
+#: With measured frames every refined value is an imaged map (a rendered frame through the
+#: pipeline, 6 noise draws): the best two candidates are refined before the selection (with the
+#: best alone, a zero offset that explains half of a domed gel's gap before any refinement left
+#: the dome's table where its first fit, a third of the height, put it).
+REFINE_CANDIDATES_FRAMES = 2
+#: Rounds of re-centring at most (depth maps, measured frames).
+REFINE_ROUNDS = 8
+REFINE_ROUNDS_FRAMES = 3
 
 
 @dataclass
@@ -71,7 +85,8 @@ class DiscrepancyOptions:
     candidates : names to consider (None: the whole library); plugin : sensor plugin whose
     imaging pipeline turns measured frames into depth (default: the sensor's name); pipeline :
     that pipeline itself (an object with ``frame_to_depth``; overrides ``plugin``); workers :
-    processes that tabulate the contacts' responses."""
+    processes that tabulate the contacts' responses; refine : re-centre the tables of the
+    candidates that explain a good part of the gap before the selection."""
 
     folds: int = 5
     null_replicates: int = 200
@@ -82,6 +97,7 @@ class DiscrepancyOptions:
     plugin: str | None = None
     pipeline: object | None = None
     workers: int = 1
+    refine: bool = True
 
 
 @dataclass
@@ -207,15 +223,19 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
     base = tables.base[sample_contact]
     residual = depth - base
     stats = sufficient_stats(tables, depth, sample_contact, measured.contact_id)
-    if stats.noise_energy is not None:
-        noise = noise_from_realisations(stats.noise_energy, stats.dof, opts.seed)
-        if measured.noise_mm is not None:
-            noise = dataclasses.replace(known_noise(measured.noise_mm),
-                                        energy_factor=noise.energy_factor)
-    elif measured.noise_mm is not None:
-        noise = known_noise(measured.noise_mm)
-    else:
-        noise = estimate_noise(residual, repro.pad_mask, opts.seed)
+    noise = _noise(stats, measured, residual, repro, opts)
+    refined = {}
+    if opts.refine:
+        # the caller's tables are shared between datasets: refine a copy of the list
+        tables = dataclasses.replace(tables, tables=list(tables.tables))
+        with _stage(progress, "refining the candidates that explain part of the gap",
+                    REFINE_CANDIDATES) as advance:
+            refined = refine_candidates(repro, tables, stats, noise, depth, sample_contact,
+                                        pipeline is not None, opts.workers, advance)
+        if refined:
+            stats = sufficient_stats(tables, depth, sample_contact, measured.contact_id)
+    timings["refine"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
     roi_masks = np.zeros((measured.n, 128, 128), bool)
     for s in range(measured.n):
         roi_masks[s].ravel()[tables.roi[sample_contact[s]]] = True
@@ -254,6 +274,55 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
                              timings)
 
 
+def _noise(stats, measured: MeasuredData, residual: np.ndarray, repro: ContactReproducer,
+           opts: DiscrepancyOptions) -> NoiseEstimate:
+    """The pixel noise: from the imaged maps' realisations, given with the data, or estimated
+    from the residual."""
+    if stats.noise_energy is not None:
+        noise = noise_from_realisations(stats.noise_energy, stats.dof, opts.seed)
+        if measured.noise_mm is not None:
+            noise = dataclasses.replace(known_noise(measured.noise_mm),
+                                        energy_factor=noise.energy_factor)
+        return noise
+    if measured.noise_mm is not None:
+        return known_noise(measured.noise_mm)
+    return estimate_noise(residual, repro.pad_mask, opts.seed)
+
+
+def refine_candidates(repro: ContactReproducer, tables: ResponseTables, stats, noise,
+                      depth: np.ndarray, sample_contact: np.ndarray, frames: bool,
+                      workers: int = 1, advance=None) -> dict[str, int]:
+    """Re-centre (in ``tables``) the tables of the candidates whose all-sample fit removes at
+    least ``REFINE_MIN_SHARE`` of the residual's excess energy, when there is structure beyond
+    the noise: ``{name: rounds}``."""
+    excess, z, n_pix = excess_energy(stats, noise)
+    if not (z > STRUCTURE_Z and excess > STRUCTURE_MIN_EXCESS):
+        return {}
+    units = excess * n_pix * noise.sigma_mm**2  # mm^2
+    reductions = []
+    for t in tables.tables:
+        if not t.testable:
+            continue
+        blk = stats.blocks[t.name]
+        _, red = TableFit(t).fit(stats.gram[:, blk, blk].sum(0), stats.proj[:, blk].sum(0))
+        reductions.append((red, t.name))
+    reductions.sort(reverse=True)
+    out = {}
+    for rank, (red, name) in enumerate(
+            reductions[:REFINE_CANDIDATES_FRAMES if frames else REFINE_CANDIDATES]):
+        table = tables.table(name)
+        if red < REFINE_MIN_SHARE * units or (table.candidate.route == "nonlinear" and rank):
+            continue
+        new, _, rounds = refine_table(repro, tables, table, depth, sample_contact, frames,
+                                      workers=workers, max_rounds=REFINE_ROUNDS_FRAMES if frames
+                                      else REFINE_ROUNDS)
+        tables.tables[tables.tables.index(table)] = new
+        out[name] = rounds
+        if advance is not None:
+            advance(1)
+    return out
+
+
 def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks: np.ndarray,
                    pad_mask: np.ndarray):
     """(expected sum, standard deviation) of the noise's squared residual outside every
@@ -270,25 +339,6 @@ def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks
     return mean, math.sqrt(var)
 
 
-def _table_stats(tables: ResponseTables, table: CandidateTable, depth: np.ndarray,
-                 sample_contact: np.ndarray, extra=None):
-    """Per sample ``D D^T`` (N, M, M) and ``D y`` (N, M) of one table; ``extra`` (per sample
-    ROI vectors or None) is a change already accounted for (subtracted from the residual)."""
-    n, m = len(sample_contact), len(table.node_coords)
-    A, b = np.zeros((n, m, m)), np.zeros((n, m))
-    for s in range(n):
-        i = int(sample_contact[s])
-        if not table.usable[i]:
-            continue
-        d = tables.project(i, table.deltas[i].astype(np.float64))
-        roi = tables.roi[i]
-        y = depth[s].ravel()[roi] - tables.base[i].ravel()[roi]
-        if extra is not None:
-            y = y - extra[s]
-        A[s], b[s] = d @ d.T, d @ tables.project(i, y)
-    return A, b
-
-
 def _second_change(tables: ResponseTables, selection: Selection, sample_contact):
     """Per sample ROI change of the second effect of a pair at its joint fit (tables), or
     None without a pair."""
@@ -299,10 +349,6 @@ def _second_change(tables: ResponseTables, selection: Selection, sample_contact)
     return [w @ t.deltas[int(i)].astype(np.float64) for i in sample_contact]
 
 
-#: Rounds of tabulation around the fit (node offsets scaled by these), and when to stop: the
-#: fit moves by less than this share of its range.
-REFINE_SHRINK = (0.5, 0.25, 0.1, 0.04)
-REFINE_TOLERANCE = 0.002
 #: A tabulated value this close to a fold's fit (share of the fit range) stands for its exact
 #: re-simulation.
 REUSE_TOLERANCE = 0.002
@@ -323,15 +369,12 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     # the tables, held at its joint fit)
     extra = _second_change(tables, selection, sample_contact)
     coords = best.coords if extra is None else selection.pair["coords"][0]
+    frames = repro.imaging is not None
+    table, coords, _ = refine_table(repro, tables, table, depth, sample_contact, frames, extra,
+                                    opts.workers, start=coords,
+                                    max_rounds=REFINE_ROUNDS_FRAMES if frames else REFINE_ROUNDS)
+    A, b = fit_stats(tables, table, depth, sample_contact, extra)
     span = np.array([hi - lo for lo, hi in table.bounds])
-    for shrink in REFINE_SHRINK:
-        table = refine_table(repro, tables, table, coords, shrink)
-        A, b = _table_stats(tables, table, depth, sample_contact, extra)
-        new, _ = TableFit(table).fit(A.sum(0), b.sum(0))
-        moved = float(np.max(np.abs(new - coords) / span))
-        coords = new
-        if moved < REFINE_TOLERANCE:
-            break
     fitter = TableFit(table)
     n = len(sample_contact)
     coords, _ = fitter.fit(A.sum(0), b.sum(0))
@@ -350,11 +393,12 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
     intervals = {}
     # no resample at all when the refined table could not be simulated anywhere (e.g. a lens
     # distortion that is not invertible over the image at the fit): no interval then
-    for key in table.candidate.fitted_params if draws else ():
+    for key in table.fitted_params if draws else ():
         value = params[key]
         vals = np.array([d[key] for d in draws])
-        if key == "azimuth_deg":
-            vals = value + (vals - value + 180.0) % 360.0 - 180.0
+        period = {"azimuth_deg": 360.0, "axis_deg": 180.0}.get(key)
+        if period:
+            vals = value + (vals - value + period / 2) % period - period / 2
         intervals[key] = (float(np.quantile(vals, 0.025)), float(np.quantile(vals, 0.975)))
 
     after = tables.base[sample_contact].copy()
@@ -368,9 +412,6 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
         near = np.flatnonzero(np.all(np.abs(table.node_coords - phi) <= REUSE_TOLERANCE * span,
                                      axis=1))
         spec = table.spec(phi)
-        warp = (ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
-                         repro.camera)
-                if table.candidate.route == "view" and repro.imaging is None else None)
         for s in np.flatnonzero(test):
             i = int(sample_contact[s])
             roi = tables.roi[i]
@@ -382,8 +423,6 @@ def verify_effect(repro: ContactReproducer, tables: ResponseTables, selection: S
                     sim, f = base, tables.base_force[i]
                 elif len(near) and table.usable[i]:
                     sim, f = base + table.deltas[i][near[0]], table.forces[i, near[0]]
-                elif warp is not None:
-                    sim, f = warp(tables.base[i]).ravel()[roi], tables.base_force[i]
                 else:
                     try:
                         full, f = repro.depth_map(c.indenter, c.pose, repro.variant(spec))
@@ -480,15 +519,10 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
                                   **{**named, "second_effect": None}, **common)
     if selection.lookalikes:
         specs = {best: verification.spec}
-        warps = {}
         for nm in selection.lookalikes:
             st = selection.stats(nm)
             specs[nm] = tables.table(nm).spec(st.coords)
-        for nm, spec in specs.items():
-            if tables.table(nm).candidate.route == "view" and repro.imaging is None:
-                warps[nm] = ViewWarp(repro.sensor.optics.camera, repro.variant(spec).optics.camera,
-                                     repro.camera)
-        exp = distinguishing_experiment(repro, specs, warps, selection.noise.sigma_mm)
+        exp = distinguishing_experiment(repro, specs, selection.noise.sigma_mm)
         msg = (f"{best} or look-alikes {', '.join(selection.lookalikes)} explain the gap "
                f"about equally well")
         return DiscrepancyVerdict(verdict="ambiguous", message=msg,

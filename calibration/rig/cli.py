@@ -1,4 +1,5 @@
-"""Command line of the indentation rig: ``simulate`` and ``press``.
+"""Command line of the indentation rig: ``simulate`` and ``press`` (``collect``, which records
+measured data for the discrepancy workflow, is added by :mod:`calibration.rig_command`).
 
 ``rig_app`` is a typer sub-app; it also runs on its own: ``python -m calibration.rig.cli --help``.
 """

@@ -28,12 +28,13 @@ import math
 import time
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from calibration.rig.base import RigDevice
 from calibration.rig.config import RigConfig
 from calibration.rig.factory import make_gauge, make_stage
 from calibration.rig.stage import StagePosition
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.pad.geometry import PadGeometry
 
 logger = logging.getLogger(__name__)
@@ -62,10 +63,8 @@ class RigReading(NamedTuple):
     """Tared force, N (compression positive)."""
 
 
-class PressRecord(BaseModel):
+class PressRecord(StrictModel):
     """What happened at one commanded contact."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     x_mm: float = Field(description="Commanded contact x, sensor frame, mm.")
     y_mm: float = Field(description="Commanded contact y, sensor frame, mm.")

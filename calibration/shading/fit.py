@@ -272,8 +272,10 @@ def sphere_residual_um(depth_mm, circle, ball_radius_px: float, mm_per_px: float
 
 
 def choose_poisson_weights(model: ShadingModel, presses: PressSet, circles, ball_radius_px,
-                           candidates, grads=None) -> tuple[float, dict[float, float]]:
-    """The x weight (y weight 1) whose integrated presses match their spheres best.
+                           candidates, grads=None, axis: str = "x"
+                           ) -> tuple[float, dict[float, float]]:
+    """The x weight (y weight 1; ``axis="y"``: the y weight, x weight 1) whose integrated
+    presses match their spheres best.
 
     Scores every candidate (mean :func:`sphere_residual_um` over the presses); the choice is
     the minimum of a parabola in log(weight) through the best candidate and its neighbours
@@ -286,7 +288,8 @@ def choose_poisson_weights(model: ShadingModel, presses: PressSet, circles, ball
     cand = sorted(float(w) for w in candidates)
     scores = {}
     for wx in cand:
-        solver = poisson_solver(presses.shape, "dirichlet", (wx, 1.0),
+        solver = poisson_solver(presses.shape, "dirichlet",
+                                (wx, 1.0) if axis == "x" else (1.0, wx),
                                 model.header.poisson_margin_px)
         errs = [sphere_residual_um(solver.integrate(gc * s, gr * s), circles[i], ball_radius_px,
                                    model.header.mm_per_px)
@@ -365,11 +368,19 @@ def fit_shading(presses: PressSet, ball_radius_mm: float, mm_per_px: float,
         circ[i, 2] = contact_radius_from_gradients(*g, circ[i, :2], circles_in[i, 2])
     # scored like the evaluation: refined centres, 0.8 x the given contact radius
     score_circles = np.c_[circ[:, :2], circles_in[:, 2]]
+    # the weaker axis is the one the colours resolve worse: try a low weight on either image
+    # axis (a sensor turned a quarter in its frames swaps them)
     wx, scores = choose_poisson_weights(model, presses, score_circles, r_px,
-                                        cfg.poisson_weights_x, grads)
+                                        cfg.poisson_weights_x, grads, axis="x")
+    wy, scores_y = choose_poisson_weights(model, presses, score_circles, r_px,
+                                          cfg.poisson_weights_x, grads, axis="y")
+    weights = (wx, 1.0)
+    if min(scores_y.values()) < min(scores.values()):
+        weights, scores = (1.0, wy), scores_y
     metrics = {"colour_model_rms_grey": rms,
                "in_sample_sphere_rms_um": float(min(scores.values()))}
-    header = model.header.model_copy(update={"poisson_weight_x": wx, "poisson_weight_y": 1.0,
+    header = model.header.model_copy(update={"poisson_weight_x": weights[0],
+                                             "poisson_weight_y": weights[1],
                                              "fit_metrics": metrics})
     model = ShadingModel(header, model.slot_of_bin, model.table)
     return ShadingFit(model, circles_in, circ, rms, scores)

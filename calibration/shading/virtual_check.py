@@ -43,16 +43,17 @@ class VirtualPresses:
 def virtual_ball_presses(sensor, grid, n_inside: int = 8, n_edge: int = 8, seed: int = 2024,
                          ball_radius_mm: float = 3.0,
                          depth_range_mm: tuple[float, float] = (0.3, 0.8),
-                         keep_surfaces: bool = False) -> VirtualPresses:
+                         keep_surfaces: bool = False, depth_grid=None) -> VirtualPresses:
     """Ball presses of ``sensor`` placed on the imaging ``grid`` (module docstring);
-    ``keep_surfaces`` also keeps each surface at the optics grid's resolution."""
+    ``keep_surfaces`` also keeps each surface at the optics grid's resolution; ``depth_grid``:
+    the grid of the truths (default: the model grid)."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.runtime.pipeline import GridResampler
 
     rng = np.random.default_rng([seed, 0x76697274])
     ball = AnalyticSphere(ball_radius_mm)
-    to_model = GridResampler(sensor.renderer.grid, OutputGrid())
+    to_model = GridResampler(sensor.renderer.grid, depth_grid or OutputGrid())
     frames, truths, centres, radii, edge, surfaces = [], [], [], [], [], []
     for i in range(n_inside + n_edge):
         depth = rng.uniform(*depth_range_mm)
@@ -79,12 +80,14 @@ def virtual_ball_presses(sensor, grid, n_inside: int = 8, n_edge: int = 8, seed:
                           sensor.renderer.grid if keep_surfaces else None)
 
 
-def near_contact_errors(depths_mm, presses: VirtualPresses, near_radii: float = 1.5) -> dict:
-    """Per-press errors (um) of model-grid depth maps (N, 128, 128) mm against the truth:
-    ``whole`` and ``near`` RMSE, ``peak`` (signed), each an (N,) array."""
+def near_contact_errors(depths_mm, presses: VirtualPresses, near_radii: float = 1.5,
+                        depth_grid=None) -> dict:
+    """Per-press errors (um) of depth maps (N, ny, nx) mm on ``depth_grid`` (default: the model
+    grid, 128 x 128) against the truth: ``whole`` and ``near`` RMSE, ``peak`` (signed), each an
+    (N,) array."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid
 
-    g = OutputGrid()
+    g = depth_grid or OutputGrid()
     x = g.x_min_mm + (np.arange(g.nx) + 0.5) * g.pitch_x_mm
     y = g.y_max_mm - (np.arange(g.ny) + 0.5) * g.pitch_y_mm
     whole, near, peak = [], [], []
@@ -145,9 +148,11 @@ class ShapePresses:
 
 
 def virtual_shape_presses(sensor, grid, indenters, n: int = 16, seed: int = 99,
-                          depth_range_mm: tuple[float, float] = (0.3, 0.8)) -> ShapePresses:
+                          depth_range_mm: tuple[float, float] = (0.3, 0.8),
+                          depth_grid=None, margin_mm: float = 3.0) -> ShapePresses:
     """``n`` presses of ``indenters`` (library names or mesh files) in turn, any rotation, centres
-    at least 3 mm inside the imaging ``grid``."""
+    at least ``margin_mm`` inside the imaging ``grid``; truths on ``depth_grid`` (default: the
+    model grid)."""
     from pathlib import Path
 
     from tactile_deploy.imaging.camera_mapping import OutputGrid
@@ -157,14 +162,14 @@ def virtual_shape_presses(sensor, grid, indenters, n: int = 16, seed: int = 99,
 
     rng = np.random.default_rng([seed, 0x73686170])
     names = [str(i) for i in indenters]
-    to_model = GridResampler(sensor.renderer.grid, OutputGrid())
+    to_model = GridResampler(sensor.renderer.grid, depth_grid or OutputGrid())
     frames, truths, used = [], [], []
     i = 0
     while len(frames) < n:
         name = names[i % len(names)]
         i += 1
-        pose = ContactPose(x_mm=rng.uniform(grid.x_min_mm + 3, grid.x_max_mm - 3),
-                           y_mm=rng.uniform(grid.y_min_mm + 3, grid.y_max_mm - 3),
+        pose = ContactPose(x_mm=rng.uniform(grid.x_min_mm + margin_mm, grid.x_max_mm - margin_mm),
+                           y_mm=rng.uniform(grid.y_min_mm + margin_mm, grid.y_max_mm - margin_mm),
                            theta_deg=rng.uniform(0, 360), depth_mm=rng.uniform(*depth_range_mm))
         try:
             out = sensor.press(name, pose, np.random.default_rng([seed, 1, i]))

@@ -46,6 +46,30 @@ def calibrate_callback(
                                    "folder OUT."),
     model: Optional[Path] = typer.Option(None, "--model", help="The family's ONNX model "
                                          "(default: exported/gelslim_mesh.onnx)."),
+    pad: Optional[str] = typer.Option(None, "--pad", help="With --presses: the sensor's pad "
+                                      "family (gelslim, gelsight_mini, digit)."),
+    presses: Optional[Path] = typer.Option(
+        None, "--presses", help="A folder of recorded ball presses (and a no-contact frame): "
+        "calibrate from it in one command, no prompts (docs/calibration.md)."),
+    reference: Optional[Path] = typer.Option(
+        None, "--reference", help="With --presses: the no-contact frame (default: picked from "
+        "the recording)."),
+    annotations: Optional[Path] = typer.Option(
+        None, "--annotations", help="With --presses: contact circles, CSV "
+        "img_names,center_x,center_y,radius (px); default: detected."),
+    ball_radius_mm: Optional[float] = typer.Option(
+        None, "--ball-radius-mm", help="With --presses: the ball's RADIUS, mm."),
+    mm_per_px: Optional[float] = typer.Option(
+        None, "--mm-per-px", help="With --presses: the frames' scale, mm per pixel (default: "
+        "the frame spans the family's sensing area)."),
+    plugins_dir: Optional[Path] = typer.Option(
+        None, "--plugins-dir", help="With --presses: write the plugin into this folder of "
+        "plugins (DIR/NAME), where `run --plugins-dir DIR --sensor NAME` finds it."),
+    folds: int = typer.Option(5, "--folds", help="With --presses: held-out check, k-fold over "
+                              "the presses (0: none)."),
+    shallow_presses: bool = typer.Option(
+        False, "--shallow-presses", help="With --presses: the ball radius is right although "
+        "every contact stays within half of it (skips the diameter check)."),
 ) -> None:
     """Calibrate a new sensor (the wizard), or run one step with a subcommand."""
     given = [n for n, v in (("--sensor", sensor), ("--rig", rig), ("--gauge", gauge),
@@ -59,6 +83,26 @@ def calibrate_callback(
     if sensor is None:
         typer.echo(ctx.get_help())
         raise typer.Exit(0 if not given else 2)
+    recording_only = [n for n, v in (("--pad", pad), ("--reference", reference),
+                                     ("--annotations", annotations),
+                                     ("--ball-radius-mm", ball_radius_mm),
+                                     ("--mm-per-px", mm_per_px), ("--plugins-dir", plugins_dir))
+                      if v is not None]
+    if presses is not None:
+        wizard_only = [n for n, v in (("--rig", rig), ("--gauge", gauge), ("--config", config),
+                                      ("--work", work), ("--redo", redo), ("--model", model))
+                       if v is not None] + (["--restart"] if restart else [])
+        if wizard_only:
+            _fail(f"{', '.join(wizard_only)} belong to the wizard, not to a calibration from "
+                  "recorded presses (--presses)")
+        from calibration.recording.cli import calibrate_from_recording
+
+        calibrate_from_recording(sensor, pad, presses, ball_radius_mm, reference, annotations,
+                                 mm_per_px, plugins_dir, out, overwrite, folds, shallow_presses)
+        return
+    if recording_only:
+        _fail(f"{', '.join(recording_only)} go with --presses DIR (a calibration from recorded "
+              "presses); the wizard takes --source and --config")
 
     from calibration.wizard.config import WizardConfigError, load_wizard_config
     from calibration.wizard.ui import AutoUI, InteractiveUI

@@ -163,6 +163,30 @@ class FemSettings(StrictModel):
         return self
 
 
+class DiscrepancySettings(StrictModel):
+    """Step 7: rig presses for the discrepancy workflow (the calibration ball at commanded
+    contacts; needs a rig)."""
+
+    n_presses: int = Field(16, ge=0, le=500, description="Presses (0: none; the unit's sensor "
+                           "model is written either way).")
+    radius_mm: float = Field(6.0, ge=0, le=15.0, description="Presses uniform over a disc of "
+                             "this radius about the sensor's centre, mm.")
+    depth_range_mm: tuple[float, float] = Field((0.3, 0.8), description="Depths of the presses, "
+                                                "uniform in this range, mm.")
+    frames_per_press: int = Field(1, ge=1, description="Frames grabbed per press.")
+    reference_frames: int = Field(8, ge=0, description="No-contact frames grabbed first (the "
+                                  "noise of the plugin's depth maps).")
+    seed: int = Field(1, ge=0, description="Seed of the press plan.")
+
+    @model_validator(mode="after")
+    def _check(self) -> DiscrepancySettings:
+        lo, hi = self.depth_range_mm
+        if not 0 < lo <= hi <= 1.5:
+            raise ValueError(f"discrepancy.depth_range_mm must satisfy 0 < min <= max <= 1.5 "
+                             f"mm, got {list(self.depth_range_mm)}")
+        return self
+
+
 class RigSettings(StrictModel):
     """How the rig presses (None: the rig config's value, or its default)."""
 
@@ -213,6 +237,7 @@ class WizardConfig(StrictModel):
     presses: PressSettings = Field(default_factory=PressSettings)
     shading: ShadingSettings = Field(default_factory=ShadingSettings)
     fem: FemSettings = Field(default_factory=FemSettings)
+    discrepancy: DiscrepancySettings = Field(default_factory=DiscrepancySettings)
 
     @model_validator(mode="after")
     def _check(self) -> WizardConfig:

@@ -24,7 +24,7 @@ STATE_NAME = "state.json"
 FORMAT_VERSION = 1
 
 #: The wizard's steps, in order.
-STEPS = ("reference", "camera", "presses", "shading", "fem", "plugin")
+STEPS = ("reference", "camera", "presses", "shading", "fem", "plugin", "discrepancy")
 
 #: One line per step, for prompts and the report.
 STEP_TITLES = {
@@ -34,6 +34,7 @@ STEP_TITLES = {
     "shading": "shading model (colour -> gradients -> depth)",
     "fem": "FEM material (nu from depth maps, E from forces)",
     "plugin": "plugin folder and calibration report",
+    "discrepancy": "the unit's sensor model, and rig presses for the discrepancy workflow",
 }
 
 Metric = float | int | str | None   # None: not measured (NaN is stored as null)

@@ -48,6 +48,21 @@ class DepthCamera:
         self.grid = RasterGrid(c, c, self.pitch_mm, self.resolution, self.resolution)
         self._rest_cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
+    @classmethod
+    def for_grid(cls, grid) -> DepthCamera:
+        """A camera over an :class:`~tactile_deploy.imaging.camera_mapping.OutputGrid` of square
+        cells (a pad family's depth grid, e.g. 124 x 96 cells of 0.15 mm): same conventions,
+        row 0 at the largest y."""
+        if abs(grid.pitch_x_mm - grid.pitch_y_mm) > 1e-9 * grid.pitch_x_mm:
+            raise ValueError(f"a depth camera needs square cells, the grid has "
+                             f"{grid.pitch_x_mm} x {grid.pitch_y_mm} mm")
+        cam = cls(max(grid.x_max_mm - grid.x_min_mm, grid.y_max_mm - grid.y_min_mm) / 2,
+                  max(grid.nx, grid.ny))
+        cam.pitch_mm = float(grid.pitch_x_mm)
+        cam.grid = RasterGrid(grid.x_min_mm + 0.5 * cam.pitch_mm, grid.y_min_mm + 0.5 * cam.pitch_mm,
+                              cam.pitch_mm, grid.nx, grid.ny)
+        return cam
+
     def pixel_centres_mm(self) -> np.ndarray:
         """Sensor-frame (x, y) of every pixel centre, (H, W, 2) mm, image row order."""
         centres = self.grid.pixel_centres_mm()

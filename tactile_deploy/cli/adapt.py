@@ -54,6 +54,10 @@ def adapt_command(
         plugin = SensorPlugin.load(sensor)
     except PluginError as e:
         fail(str(e))
+    if plugin.manifest.model is None:
+        fail(f"plugin {plugin.name!r} has no learned model to adapt (pad "
+             f"{plugin.manifest.family.pad}): its meshes come from the pad's physics lift, which "
+             "reads the depth map directly; nothing to adapt")
     if rollback or activate is not None:
         _switch_version(plugin, rollback, activate, dry_run)
         return

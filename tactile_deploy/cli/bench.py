@@ -19,6 +19,7 @@ BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
 BENCHMARKS = {
     "sim": "bench_sim.py",
     "sim-gpu": "bench_sim_gpu.py",
+    "sim-resolved": "bench_sim_resolved.py",
     "shading": "bench_shading.py",
     "optics": "bench_optics.py",
     "predictor": "bench_predictor.py",
@@ -26,6 +27,8 @@ BENCHMARKS = {
     "adapt": "bench_adapt.py",
     "adapt-tables": "bench_adapt_tables.py",
     "discrepancy": "bench_discrepancy.py",
+    "recording": "bench_recording.py",
+    "families": "bench_families.py",
 }
 
 

@@ -13,7 +13,7 @@ from importlib.metadata import entry_points
 
 import typer
 
-from tactile_deploy.cli import adapt, bench, cameras, pad, plugins, run, simulate
+from tactile_deploy.cli import adapt, bench, cameras, pad, plugins, reference, run, simulate
 
 app = typer.Typer(
     name="tactile-deploy",
@@ -30,6 +30,7 @@ app.command("run")(run.run_command)
 app.add_typer(plugins.plugins_app, name="plugins")
 app.command("adapt")(adapt.adapt_command)
 app.command("cameras")(cameras.cameras_command)
+app.command("reference")(reference.reference_command)
 
 
 def _register_entry_points() -> None:

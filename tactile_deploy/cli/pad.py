@@ -20,7 +20,22 @@ def pad_info(name: str = typer.Option("gelslim", "--pad", help="Shipped pad name
     mesh = _load_pad(name)
     card = load_pad_card(name)
     g = card.geometry
-    console.print(f"pad {card.name} v{card.version}: {g.shape}, radius {g.radius_mm} mm, thickness {g.thickness_mm} mm")
+    outline = (f"disc, radius {g.radius_mm} mm" if g.shape == "disc"
+               else f"rectangle {g.width_mm} x {g.length_mm} mm (x by y)")
+    crown = f", crown {g.dome_height_mm} mm" if g.dome_height_mm else ""
+    console.print(f"pad {card.name} v{card.version}: {outline}, thickness {g.thickness_mm} mm{crown}")
+    fam = card.family
+    if fam is not None:
+        a, dg = fam.sensing_area, fam.depth_grid
+        console.print(f"  {fam.description}")
+        console.print(f"  held: backplate {fam.backplate}, sides {fam.sides}")
+        console.print(f"  sensing area x {a.x_min_mm:g}..{a.x_max_mm:g} mm, y {a.y_min_mm:g}.."
+                      f"{a.y_max_mm:g} mm, node spacing there {card.sensing_spacing_mm} mm")
+        console.print(f"  depth grid {dg.nx} x {dg.ny} cells of {dg.pitch_x_mm:.3g} mm")
+        for src in fam.sources:
+            console.print(f"  source: {src.what} -- {src.reference}")
+        for text in fam.assumptions:
+            console.print(f"  assumed: {text}")
     console.print(f"  {card.n_nodes} nodes, {card.n_tets} tets, {len(mesh.edges)} edges")
     for set_name, nodes in mesh.node_sets.items():
         console.print(f"  node set {set_name}: {len(nodes)} nodes")

@@ -68,7 +68,11 @@ def plugins_show(name: str = typer.Argument(..., help="Plugin name or folder."))
     console.print(f"  imaging grid    {g.nx}x{g.ny} over x [{g.x_min_mm:g}, {g.x_max_mm:g}] mm, "
                   f"y [{g.y_min_mm:g}, {g.y_max_mm:g}] mm ({g.pitch_x_mm:.4f} mm/px)")
     d = m.depth_grid
-    console.print(f"  model grid      {d.nx}x{d.ny} over +-{d.x_max_mm:g} mm")
+    console.print(f"  depth grid      {d.nx}x{d.ny} over x [{d.x_min_mm:g}, {d.x_max_mm:g}] mm, "
+                  f"y [{d.y_min_mm:g}, {d.y_max_mm:g}] mm")
+    if m.model is None:
+        console.print("  model           none: meshes from the pad's physics lift (run --mesh "
+                      "physics)")
     console.print(f"  material        E {m.material.E_mpa:g} MPa, nu {m.material.nu:g} "
                   f"({m.material.source or 'source not given'})")
     console.print(f"  default source  {m.default_source.model_dump()}")

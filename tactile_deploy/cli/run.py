@@ -32,6 +32,13 @@ def run_command(
     out: Path | None = typer.Option(None, "--out", help="Folder for meshes, frames.csv, "
                                        "run.json (and previews with --view)."),
     every: int = typer.Option(1, "--every", min=1, help="Write the mesh of every N-th frame."),
+    mesh: str | None = typer.Option(None, "--mesh", help="learned (the plugin's ONNX model) or "
+                                    "physics (the depth map through the pad's FEM lift: any pad, "
+                                    "no training). Default: learned when the plugin has a model, "
+                                    "else physics."),
+    plugins_dir: list[Path] | None = typer.Option(None, "--plugins-dir", help="Folder of plugin "
+                                                  "folders to search first (also "
+                                                  "$TACTILE_DEPLOY_PLUGIN_PATH); repeatable."),
     formats: str = typer.Option("ply,vtu", "--format", help="Mesh files to write: ply, obj, glb "
                                 "(surface), vtu (volume), npz (vertices, rest_vertices, depth "
                                 "arrays); comma-separated."),
@@ -52,7 +59,7 @@ def run_command(
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after N frames."),
     loop: bool = typer.Option(False, "--loop", help="Replay a recorded source endlessly (Ctrl-C ends)."),
     realtime: bool = typer.Option(False, "--realtime", help="Play recordings at their recorded pace."),
-    threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads."),
+    threads: int = typer.Option(1, "--threads", min=1, help="onnxruntime threads (and numpy's BLAS threads)."),
     providers: str = typer.Option("auto", "--providers", help="onnxruntime execution providers: "
                                   "auto | cpu | cuda."),
     family_model: bool = typer.Option(False, "--family-model", help="Use the family model even "
@@ -111,15 +118,29 @@ def run_command(
         fail(f"--out {out}: that looks like an option, not a folder name; give the folder first "
              "(e.g. --out run1)")
     try:
+        from tactile_deploy.runtime.drift import DriftCheckingHooks, DriftMonitor
+        from tactile_deploy.runtime.physics import PhysicsPredictor, choose_mesh_mode
+        from tactile_deploy.runtime.plugin_dirs import add_plugin_dirs
+
+        add_plugin_dirs(plugins_dir)
         plugin = SensorPlugin.load(sensor)
+        mesh_mode, mesh_note = choose_mesh_mode(plugin, mesh)
+        if mesh_note:
+            err_console.print(mesh_note)
+        if plugin.manifest.reference_range is not None:
+            plugin.hooks = DriftCheckingHooks(plugin.hooks, DriftMonitor(
+                plugin.manifest.reference_range, plugin.reference_frame, plugin.sensor_option))
         if source is None:
             config, from_manifest = plugin.manifest.default_source, True
             if loop and hasattr(config, "loop"):
                 config = config.model_copy(update={"loop": True})
         else:
             config, from_manifest = parse_source(source, loop=loop), False
-        predictor = MeshPredictor.from_plugin(plugin, adapted=False if family_model else None,
-                                              threads=threads, providers=providers)
+        if mesh_mode == "physics":
+            predictor = PhysicsPredictor(plugin)
+        else:
+            predictor = MeshPredictor.from_plugin(plugin, adapted=False if family_model else None,
+                                                  threads=threads, providers=providers)
         # the source is opened once (and closed) before --out is made: a wrong source leaves no
         # folder behind; the run opens it again (a camera does not run and drop frames meanwhile)
         src = make_source(config, plugin, from_manifest=from_manifest)
@@ -136,7 +157,9 @@ def run_command(
         if view and out_dir is None:
             preview_dir = prepare_out_dir(default_preview_dir())
         estimator = None
-        if forces:
+        if forces and mesh_mode == "physics":
+            estimator = predictor.forces       # the lift's own reaction forces
+        elif forces:
             from tactile_deploy.cli.common import progress_bar
             from tactile_deploy.pad.asset import load_pad
             from tactile_deploy.runtime.forces import SurfaceStiffness
@@ -204,8 +227,13 @@ def run_command(
     adapted = "adapted " if predictor.metadata.get("adapted") == "true" else ""
     err_console.print(f"running {plugin.name} on {src.name} with {predictor.providers[0]}, {adapted}model "
                       f"{model.as_posix()} (Ctrl-C to stop)")
+    from threadpoolctl import threadpool_limits
+
     try:
-        summary = runner.run()
+        # numpy's BLAS (read-out, forces) at --threads as well: its default pool beside onnxruntime's
+        # threads made the force stage 25x and the read-out 3x slower on a 2-core machine
+        with threadpool_limits(limits=threads, user_api="blas"):
+            summary = runner.run()
     except (SourceError, RunError) as e:
         if live:
             err_console.file.write("\n")

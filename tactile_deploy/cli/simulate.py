@@ -17,7 +17,8 @@ from tactile_deploy.cli.common import (
     progress_bar,
 )
 
-FRICTION_CHOICES = ("frictionless", "stick")
+FRICTION_CHOICES = ("frictionless", "stick", "coulomb")
+MODEL_CHOICES = ("neo-hookean", "linear")
 
 
 def _indenter_list(text: str) -> tuple[str, ...]:
@@ -56,8 +57,9 @@ def simulate_command(
     depth: float = typer.Option(0.8, "--depth", help="Indentation depth of the lowest point below the rest surface, mm."),
     E: float = typer.Option(0.3, "--E", help="Young's modulus, MPa (scales forces only)."),
     nu: float = typer.Option(0.48, "--nu", help="Poisson's ratio."),
-    mu: float = typer.Option(1.0, "--mu", help="Friction coefficient (recorded; used by Coulomb contact)."),
-    friction: str = typer.Option("frictionless", "--friction", help="Contact law: frictionless or stick."),
+    mu: float = typer.Option(1.0, "--mu", help="Coulomb friction coefficient gel/indenter (used by --friction coulomb)."),
+    friction: str = typer.Option("frictionless", "--friction", help="Contact law: frictionless, stick, or coulomb (friction coefficient --mu)."),
+    model: str = typer.Option("neo-hookean", "--model", help="Gel law of a single contact: neo-hookean (large deformation) or linear (its small-strain limit); both resolved at the depth-pixel scale."),
     pressing_face: str = typer.Option("top", "--pressing-face", help="For mesh files: 'top' if the feature is the top of the file (indenters standing on a base), 'bottom' if it already faces -z."),
     out: Path = typer.Option(..., "--out", help="FILE.npz for one contact; a folder with --n."),
     n: Optional[int] = typer.Option(None, "--n", help="Batch mode: number of random contacts."),
@@ -78,6 +80,8 @@ def simulate_command(
 
     if friction not in FRICTION_CHOICES:
         fail(f"--friction must be one of {', '.join(FRICTION_CHOICES)}, got {friction!r}")
+    if model not in MODEL_CHOICES:
+        fail(f"--model must be one of {', '.join(MODEL_CHOICES)}, got {model!r}")
     try:
         material = Material(E_mpa=E, nu=nu, mu=mu, friction=friction)
     except ValidationError as exc:
@@ -105,8 +109,13 @@ def simulate_command(
                  f"{'them' if len(batch_only) > 1 else 'it'} out for one contact")
         if indenter is None:
             fail("give --indenter NAME|PATH for one contact, or --n N for a dataset")
-        _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite)
+        _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite, model)
     else:
+        if friction == "coulomb":
+            fail("--friction coulomb is solved by the resolved single-contact solver; datasets "
+                 "(--n) use frictionless or stick contact on the pad mesh")
+        if _given(ctx, {"model": "--model"}):
+            fail("--model applies to one contact; datasets (--n) use the linear pad-mesh solver")
         single_only = _given(ctx, SINGLE_OPTIONS)
         if single_only:
             fail(_single_options_with_n(single_only))
@@ -134,17 +143,15 @@ def _single_options_with_n(given: list[str]) -> str:
             f"{'; ' if instead else ''}{', '.join(instead)}; or leave out --n to simulate one contact")
 
 
-def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, overwrite: bool) -> None:
+def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, overwrite: bool,
+            model: str = "neo-hookean") -> None:
     from pydantic import ValidationError
 
     from tactile_deploy.atomic import write_npz
     from tactile_deploy.indenters import ContactPose, get_indenter
     from tactile_deploy.outputs import OutputPathError, check_output_file
-    from tactile_deploy.simulation.contact import (
-        ContactError,
-        get_simulator,
-        simulate_contact,
-    )
+    from tactile_deploy.fem.truth import TruthSolveError
+    from tactile_deploy.simulation.contact import ContactError, simulate_resolved
 
     try:  # one contact: FILE.npz in an existing folder, --overwrite to replace it
         check_output_file(out, "--out", overwrite=overwrite, suffixes=(".npz",))
@@ -158,17 +165,20 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
         pose = ContactPose(x_mm=x, y_mm=y, theta_deg=theta, depth_mm=depth)
     except (ValueError, FileNotFoundError, OSError, ValidationError) as exc:
         fail(str(exc))
-    sim = get_simulator(material)
-    prepare_simulator(sim)
     try:
-        sample = simulate_contact(ind, pose, material, simulator=sim)
+        sample = simulate_resolved(ind, pose, material, model=model)
     except ContactError as exc:
         fail(str(exc))
+    except TruthSolveError as exc:
+        fail(f"{exc}; try a shallower --depth or --model linear")
     write_npz(out, **sample.npz_arrays())
+    stick = "" if sample.stick_mask is None or material.friction == "frictionless" else (
+        f" ({int(sample.stick_mask.sum())} sticking)")
     console.print(
-        f"wrote {out}: indenter {ind.name}, depth {depth:g} mm -> force {sample.force_n:.4f} N, "
-        f"{int(sample.contact_mask.sum())} sensing nodes in contact, max depth "
-        f"{float(sample.depth_mm.max()):.3f} mm"
+        f"wrote {out}: indenter {ind.name}, {model}, {material.friction} contact, depth {depth:g} mm "
+        f"-> force {sample.force_n:.4f} N, {int(sample.contact_mask.sum())} sensing nodes in "
+        f"contact{stick}, max depth {float(sample.depth_mm.max()):.3f} mm, largest penetration "
+        f"{1e3 * sample.metadata['max_penetration_mm']:.2f} um"
     )
 
 

@@ -31,14 +31,15 @@ class Supports(BaseModel):
       ``"rollers"``: the bottom may slide (u_z = 0 only), used by the patch tests; two pins
       (centre node in x and y, one rim node tangentially) then remove the rigid-body modes
       without restraining a uniform radial expansion.
-    * ``side="free"`` (the sensor) or ``"rollers"`` (zero normal displacement on the side wall,
-      the confined-layer test).
+    * ``side="free"`` (the sensor), ``"rollers"`` (zero normal displacement on the side wall,
+      the confined-layer test) or ``"fixed"`` (side walls held by a rigid frame: every side node
+      fixed).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     backplate: Literal["fixed", "rollers"] = Field("fixed", description="Bottom support.")
-    side: Literal["free", "rollers"] = Field("free", description="Side-wall support.")
+    side: Literal["free", "rollers", "fixed"] = Field("free", description="Side-wall support.")
 
     @property
     def key(self) -> str:
@@ -46,6 +47,13 @@ class Supports(BaseModel):
 
 
 SENSOR_SUPPORTS = Supports()
+
+
+def family_supports(family) -> Supports:
+    """How a pad family (:class:`~tactile_deploy.pad.family.PadFamily`) holds its pad: a bonded
+    backplate is fixed (a sliding one on rollers), fixed sides are fixed."""
+    return Supports(backplate="fixed" if family.backplate == "bonded" else "rollers",
+                    side="fixed" if family.sides == "fixed" else "free")
 
 
 @dataclass(frozen=True)
@@ -91,10 +99,13 @@ def _node_normals(mesh: PadMesh, supports: Supports) -> dict[int, list[np.ndarra
     for plane, normal in (("x0", np.eye(3)[0]), ("y0", np.eye(3)[1])):
         for i in mesh.symmetry_nodes[plane]:  # symmetry planes of a quarter model
             normals.setdefault(int(i), []).append(normal)
+    if supports.side == "fixed":
+        for i in mesh.side_nodes:
+            normals[int(i)] = [np.eye(3)[0], np.eye(3)[1], ez]
     if supports.side == "rollers":
         for i in mesh.side_nodes:
-            n = _side_normal(mesh, v[i])
-            normals.setdefault(int(i), []).append(n)
+            for n in _side_normals(mesh, v[i]):
+                normals.setdefault(int(i), []).append(n)
     if supports.backplate == "rollers":
         # Remove the rigid-body modes left by sliding supports with pins compatible with a
         # uniform expansion: the centre node in x and y (in-plane translation, unless side
@@ -112,13 +123,19 @@ def _node_normals(mesh: PadMesh, supports: Supports) -> dict[int, list[np.ndarra
     return normals
 
 
-def _side_normal(mesh: PadMesh, p: np.ndarray) -> np.ndarray:
+def _side_normals(mesh: PadMesh, p: np.ndarray) -> list[np.ndarray]:
+    """Outward normals of the side walls through point ``p`` (two at a box's vertical edge)."""
     g = mesh.geometry
     if g.shape == "disc":
         n = np.array([p[0], p[1], 0.0])
-        return n / np.linalg.norm(n)
-    on_x = abs(abs(p[0]) - 0.5 * g.width_mm) < 1e-9 * g.half_extent_mm
-    return np.array([np.sign(p[0]), 0.0, 0.0]) if on_x else np.array([0.0, np.sign(p[1]), 0.0])
+        return [n / np.linalg.norm(n)]
+    tol = 1e-9 * g.half_extent_mm
+    out = []
+    if abs(abs(p[0]) - 0.5 * g.width_mm) < tol:
+        out.append(np.array([np.sign(p[0]), 0.0, 0.0]))
+    if abs(abs(p[1]) - 0.5 * g.length_mm) < tol:
+        out.append(np.array([0.0, np.sign(p[1]), 0.0]))
+    return out
 
 
 def _free_basis(normals: list[np.ndarray]) -> np.ndarray:

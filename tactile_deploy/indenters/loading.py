@@ -10,6 +10,7 @@ lowest point at z = 0).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 
@@ -63,7 +64,14 @@ def load_indenter(
         )
     if pressing_face == "top":
         mesh.apply_transform(np.diag([1.0, -1.0, -1.0, 1.0]))
-    return Indenter(mesh, name or path.stem, "file", pitch_mm=pitch_mm, max_relief_mm=max_relief_mm)
+    indenter = Indenter(mesh, name or path.stem, "file", pitch_mm=pitch_mm,
+                        max_relief_mm=max_relief_mm)
+    # Where it came from, so that a contact can be simulated again from its record.
+    indenter.source_path = str(path.resolve())
+    indenter.source_sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    indenter.pressing_face = pressing_face
+    indenter.scale_to_mm = float(scale_to_mm)
+    return indenter
 
 
 def _read_mesh(path: Path):

@@ -11,7 +11,9 @@ The geometry is parametric so that another pad is a config change, not new code:
 * ``dome_height_mm > 0``: a pre-curved sensing surface whose apex is the origin and whose rim
   sits ``dome_height_mm`` lower (a paraboloid cap);
 * grading (``core_*`` and ``*_growth``) for meshes that must be fine near a contact and coarse far
-  away (used by the analytic validation blocks).
+  away (used by the analytic validation blocks); for a box, ``core_half_width_mm`` and
+  ``core_half_length_mm`` bound a central rectangle (the camera's sensing area) meshed at
+  ``core_edge_mm``, the spacing growing by ``edge_growth`` up to ``edge_mm`` outside it.
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ class PadGeometry(BaseModel):
     )
     core_edge_mm: float = Field(0.1, gt=0, description="Node spacing inside the core, mm.")
     edge_growth: float = Field(1.15, ge=1.0, description="Ring-to-ring spacing ratio outside the core.")
+    core_half_width_mm: float = Field(
+        0.0, ge=0, description="Box only: half extent along x of the central rectangle meshed at "
+        "core_edge_mm, mm (0 = uniform edge_mm).")
+    core_half_length_mm: float = Field(
+        0.0, ge=0, description="Box only: half extent along y of that rectangle, mm.")
     top_layer_mm: float = Field(
         0.0, ge=0, description="Thickness of the top element layer, mm (0 = uniform layers)."
     )
@@ -63,7 +70,19 @@ class PadGeometry(BaseModel):
                 f"thickness_mm={self.thickness_mm}: the rim would reach the backplate"
             )
         if self.shape == "box" and self.core_radius_mm > 0:
-            raise ValueError("grading (core_radius_mm > 0) is only supported for shape='disc'")
+            raise ValueError("grading (core_radius_mm > 0) is only supported for shape='disc'; a "
+                             "box is graded with core_half_width_mm and core_half_length_mm")
+        box_core = self.core_half_width_mm > 0 or self.core_half_length_mm > 0
+        if box_core and self.shape != "box":
+            raise ValueError("core_half_width_mm / core_half_length_mm grade a box; a disc is "
+                             "graded with core_radius_mm")
+        if box_core and not (self.core_half_width_mm > 0 and self.core_half_length_mm > 0):
+            raise ValueError("give both core_half_width_mm and core_half_length_mm (> 0)")
+        if box_core and (self.core_half_width_mm > 0.5 * self.width_mm + 1e-9
+                         or self.core_half_length_mm > 0.5 * self.length_mm + 1e-9):
+            raise ValueError(
+                f"the fine rectangle +-{self.core_half_width_mm} x +-{self.core_half_length_mm} mm "
+                f"does not fit the {self.width_mm} x {self.length_mm} mm box")
         if self.sector_deg != 360.0 and (self.shape != "disc" or self.sector_deg != 90.0):
             raise ValueError(f"sector_deg must be 360 or 90 (a disc quarter), got {self.sector_deg}")
         if self.top_layer_mm > self.thickness_mm:

@@ -48,13 +48,51 @@ def _ring_radii(geometry: PadGeometry) -> np.ndarray:
     return np.asarray(radii)
 
 
+def box_axis_coords(extent_mm: float, core_half_mm: float, core_edge_mm: float,
+                    edge_mm: float, growth: float) -> np.ndarray:
+    """Node coordinates (mm, ascending, symmetric about 0) along one side of a box.
+
+    Without a core (``core_half_mm`` = 0): uniform, as close to ``edge_mm`` as divides the side.
+    With one: uniform at most ``core_edge_mm`` inside +-``core_half_mm``, then each interval
+    ``growth`` times the previous one, at most ``edge_mm``, out to the side's ends (the last
+    intervals scaled together so that they end exactly at the side).
+    """
+    half = 0.5 * extent_mm
+    if core_half_mm <= 0:
+        n = max(1, round(extent_mm / edge_mm))
+        return np.linspace(-half, half, n + 1)
+    core_half = min(core_half_mm, half)
+    n_core = max(1, math.ceil(2.0 * core_half / core_edge_mm - 1e-9))
+    core = np.linspace(-core_half, core_half, n_core + 1)
+    h = 2.0 * core_half / n_core
+    margin = half - core_half
+    if margin <= 1e-9:
+        return core
+    steps = []
+    while sum(steps) < margin:
+        h = min(h * growth, edge_mm)
+        steps.append(h)
+    # n or n - 1 growing intervals, stretched or shrunk to end exactly at the side
+    options = [steps] + ([steps[:-1]] if len(steps) > 1 else [])
+    best = min(options, key=lambda st: abs(np.log(margin / sum(st))))
+    right = core_half + np.cumsum(np.asarray(best) * (margin / sum(best)))
+    right[-1] = half
+    return np.concatenate([-right[::-1], core, right])
+
+
+def _box_axes(geometry: PadGeometry) -> tuple[np.ndarray, np.ndarray]:
+    g = geometry
+    xs = box_axis_coords(g.width_mm, g.core_half_width_mm, g.core_edge_mm, g.edge_mm,
+                         g.edge_growth)
+    ys = box_axis_coords(g.length_mm, g.core_half_length_mm, g.core_edge_mm, g.edge_mm,
+                         g.edge_growth)
+    return xs, ys
+
+
 def plane_points(geometry: PadGeometry) -> np.ndarray:
     """In-plane node positions of one layer, (n_plane, 2) float64, mm (sensor frame x, y)."""
     if geometry.shape == "box":
-        nx = max(1, round(geometry.width_mm / geometry.edge_mm))
-        ny = max(1, round(geometry.length_mm / geometry.edge_mm))
-        xs = np.linspace(-0.5 * geometry.width_mm, 0.5 * geometry.width_mm, nx + 1)
-        ys = np.linspace(-0.5 * geometry.length_mm, 0.5 * geometry.length_mm, ny + 1)
+        xs, ys = _box_axes(geometry)
         gx, gy = np.meshgrid(xs, ys, indexing="xy")
         return np.stack([gx.ravel(), gy.ravel()], axis=1)
     points = [np.zeros((1, 2))]
@@ -77,8 +115,8 @@ def plane_points(geometry: PadGeometry) -> np.ndarray:
 def plane_triangles(points_xy: np.ndarray, geometry: PadGeometry) -> np.ndarray:
     """Counter-clockwise triangles (n_tri, 3) int64 over the in-plane points."""
     if geometry.shape == "box":
-        nx = max(1, round(geometry.width_mm / geometry.edge_mm))
-        ny = max(1, round(geometry.length_mm / geometry.edge_mm))
+        xs, ys = _box_axes(geometry)
+        nx, ny = len(xs) - 1, len(ys) - 1
         idx = np.arange((nx + 1) * (ny + 1)).reshape(ny + 1, nx + 1)
         a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
         c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()

@@ -238,7 +238,9 @@ class Runner:
         if o.out_dir is not None:
             from tactile_deploy.runtime.writers import MeshWriter
 
-            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm)
+            pipeline = getattr(self.predictor, "pipeline", None)
+            self.writer = MeshWriter(o.out_dir, topo, o.formats, o.colour_max_mm,
+                                     depth_grid=getattr(pipeline, "depth_grid", None))
             from tactile_deploy.runtime.frame_log import FrameLog
 
             self._frame_log = FrameLog(o.out_dir, self.writer)

@@ -86,7 +86,7 @@ def write_volume(path: Path, topology, vertices_mm: np.ndarray) -> None:
 
 
 def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.ndarray | None,
-                    metadata: dict | None = None) -> None:
+                    metadata: dict | None = None, depth_grid=None) -> None:
     """One frame's arrays as ``.npz`` (compressed, atomic), the names of ``simulate --out``:
 
     vertices       (n, 3) float32  mm, sensor frame, deformed (vertex i = pad mesh vertex i)
@@ -103,12 +103,21 @@ def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.
             "frame": SENSOR_FRAME, "mesh_hash": topology.mesh_hash,
             "depth": "mm the surface is pushed in along -z; 128 x 128 over +-17.5 mm, row 0 at the "
                      "largest y"}
+    if depth_grid is not None:      # a pad family's own depth grid (docs/families.md)
+        g = depth_grid
+        meta["depth"] = (f"mm the surface is pushed in along -z; {g.ny} x {g.nx} cells of "
+                         f"{g.pitch_x_mm:.4g} mm, row 0 at the largest y")
+        meta["depth_grid_mm"] = {"x_min": g.x_min_mm, "x_max": g.x_max_mm, "y_min": g.y_min_mm,
+                                 "y_max": g.y_max_mm, "nx": g.nx, "ny": g.ny}
     meta.update(metadata or {})
     arrays = {"vertices": np.asarray(vertices_mm, np.float32),
               "rest_vertices": np.asarray(topology.rest_vertices_mm, np.float32)}
     if depth_mm is not None:
         arrays["depth"] = np.asarray(depth_mm, np.float32)
-    write_npz(path, **arrays, metadata=np.array(json.dumps(meta)))
+    from tactile_deploy.atomic import finite_or_null
+
+    # strict JSON: a score not computed (NaN, the physics lift has no OOD score) is null
+    write_npz(path, **arrays, metadata=np.array(json.dumps(finite_or_null(meta))))
 
 
 #: Why a requested mesh was not written.
@@ -129,8 +138,9 @@ class MeshWriter:
     """
 
     def __init__(self, folder: Path, topology, formats=("ply", "vtu"), max_mm: float = 1.0,
-                 queue_size: int = 8):
+                 queue_size: int = 8, depth_grid=None):
         self.folder = Path(folder)
+        self.depth_grid = depth_grid
         self.topology = topology
         self.formats = tuple(formats)
         self.max_mm = float(max_mm)
@@ -198,7 +208,7 @@ class MeshWriter:
                     if fmt in VOLUME_FORMATS:
                         write_volume(path, self.topology, v)
                     elif fmt in ARRAY_FORMATS:
-                        write_frame_npz(path, self.topology, v, depth, meta)
+                        write_frame_npz(path, self.topology, v, depth, meta, self.depth_grid)
                     else:
                         write_surface(path, self.topology, v, self.max_mm)
                 self.written += 1

@@ -64,10 +64,12 @@ class VirtualSensorConfig(StrictModel):
 
     format_version: Literal[1] = Field(FORMAT_VERSION, description="Version of this file format.")
     name: str = Field(description="Sensor name, e.g. 'gelslim1'.")
-    family: Literal["gelslim", "gelsight"] = Field(description="Sensor family.")
+    family: Literal["gelslim", "gelsight", "gelsight_mini", "digit"] = Field(
+        description="Sensor family.")
     description: str = Field("", description="What this unit is and how it differs.")
-    pad: Literal["gelslim"] = Field("gelslim", description="Shipped pad mesh (tactile-deploy pad "
-                                    "info).")
+    pad: Literal["gelslim", "gelsight_mini", "digit"] = Field(
+        "gelslim", description="Shipped pad mesh (tactile-deploy pad info --pad NAME); its "
+        "family's depth grid is the grid of the truth depth maps.")
     material: Material = Field(default_factory=lambda: Material(nu=0.48),
                                description="Gel material and contact law.")
     optics: OpticsModel = Field(description="Optics from the sensing surface to the RGB frame.")

@@ -386,13 +386,24 @@ class VirtualSensor:
         """
         _, _, result = self.solve_contact(indenter, pose)
         if result is None:
-            return np.zeros((128, 128), np.float32), 0.0
+            g = self.depth_grid
+            return np.zeros((g.ny, g.nx), np.float32), 0.0
         return self._render_depth(result.vertices_mm), float(result.force_n)
+
+    @property
+    def depth_grid(self):
+        """The grid of the truth depth maps: the pad family's depth grid (GelSlim: the model
+        grid, 128 x 128 over +-17.5 mm)."""
+        from tactile_deploy.pad.family import FAMILIES
+
+        return FAMILIES[self.config.pad].depth_grid
 
     def _render_depth(self, vertices_mm: np.ndarray) -> np.ndarray:
         if self._depth_camera is None:
 
-            self._depth_camera = DepthCamera()
+            g = self.depth_grid
+            self._depth_camera = (DepthCamera() if self.config.pad == "gelslim"
+                                  else DepthCamera.for_grid(g))
         return self._depth_camera.render(self.simulator.mesh, vertices_mm).depth_mm
 
     def _press(self, indenter, pose: ContactPose, rng, truth: bool):
@@ -406,7 +417,8 @@ class VirtualSensor:
                 "pose": pose.model_dump(), "pose_reached": reached.model_dump()}
         if result is None:
             frame = self.renderer.reference_frame(rng, gain)
-            zeros = np.zeros((128, 128), np.float32) if truth else None
+            g = self.depth_grid
+            zeros = np.zeros((g.ny, g.nx), np.float32) if truth else None
             return SensorFrame(frame, zeros, np.zeros((self.renderer.grid.ny,
                                                        self.renderer.grid.nx), np.float32),
                                mesh.vertices.astype(np.float32) if truth else None, 0.0, pose,

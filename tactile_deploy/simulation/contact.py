@@ -74,6 +74,7 @@ class ContactSample:
     contact_mask : (n_plane,) bool, sensing nodes in contact
     pressure_kpa : (n_plane,) float32
     metadata : dict (indenter, pose, material, mesh hash, generator version)
+    stick_mask : (n_plane,) bool, sensing nodes in contact that stick (resolved contacts), or None
     frame : (H, W, 3) uint8 RGB camera frame of a virtual sensor, or None
         (``tactile_deploy.sensors.VirtualSensor.contact_sample``)
     """
@@ -88,6 +89,7 @@ class ContactSample:
     pressure_kpa: np.ndarray
     metadata: dict = field(default_factory=dict)
     frame: np.ndarray | None = None
+    stick_mask: np.ndarray | None = None
 
     def npz_arrays(self) -> dict[str, np.ndarray]:
         """Arrays of the ``simulate --out FILE.npz`` format (metadata as a JSON string; ``frame``
@@ -105,6 +107,8 @@ class ContactSample:
         }
         if self.frame is not None:
             arrays["frame"] = self.frame
+        if self.stick_mask is not None:
+            arrays["stick_mask"] = self.stick_mask
         return arrays
 
 
@@ -148,6 +152,117 @@ def check_pose(mesh: PadMesh, indenter: Indenter, pose: ContactPose) -> np.ndarr
     return delta
 
 
+def indenter_record(indenter: Indenter) -> dict:
+    """Metadata that names ``indenter`` so that the contact can be simulated again: a library
+    or analytic name, or a mesh file's absolute path, sha256 and how it was read."""
+    rec = {"indenter": indenter.name, "indenter_kind": indenter.kind}
+    path = getattr(indenter, "source_path", None)
+    if path is not None:
+        rec.update({"indenter": path, "indenter_name": indenter.name,
+                    "indenter_sha256": indenter.source_sha256,
+                    "pressing_face": indenter.pressing_face,
+                    "scale_to_mm": indenter.scale_to_mm})
+    return rec
+
+
+#: What ``depth`` is for a resolved contact.
+RESOLVED_DEPTH_MEANING = (
+    "mm pushed in along -z (>= 0): the resolved surface of the truth mesh (refined to at most "
+    "0.27 mm where contact occurs), read at each pixel centre; the indenter does not pass "
+    "through it"
+)
+
+
+def simulate_resolved(
+    indenter: Indenter,
+    pose: ContactPose,
+    material: Material = Material(),
+    model: str = "neo-hookean",
+    camera: DepthCamera | None = None,
+    pad: str = "gelslim",
+) -> ContactSample:
+    """Resolved contact (:class:`tactile_deploy.fem.truth.TruthSolver`) carried onto the frozen
+    pad mesh: ``vertices_mm`` are the truth displacements interpolated at its nodes,
+    ``depth_mm`` the truth surface rendered on the camera grid, ``pressure_kpa`` and
+    ``contact_mask`` the truth contact interpolated at its sensing nodes.
+
+    ``model``: "neo-hookean" (large deformation) or "linear" (its small-strain limit).
+    """
+    from tactile_deploy.fem.transfer import Transfer
+    from tactile_deploy.fem.truth import TruthSolver
+
+    mesh = load_pad(pad)
+    cam = camera or get_camera()
+    check_pose(mesh, indenter, pose)
+    solver = TruthSolver(mesh.geometry, material, model=model)
+    sol = solver.solve(indenter, pose)
+    truth = sol.mesh
+    transfer = Transfer(truth.vertices, truth.tets, mesh.vertices)
+    u = transfer(sol.displacements_mm)
+    vertices = mesh.vertices + u
+    surface = Transfer(truth.vertices, truth.tets, mesh.vertices[mesh.sensing_nodes])
+    n_truth = truth.n_nodes
+    pressure_truth = np.zeros(n_truth)
+    pressure_truth[: truth.n_plane] = sol.pressure_kpa()
+    pressure = np.maximum(surface(pressure_truth), 0.0)
+    stick_truth = np.zeros(n_truth)
+    stick_truth[: truth.n_plane] = sol.sticking
+    contact_truth = np.zeros(n_truth)
+    contact_truth[: truth.n_plane] = sol.in_contact
+    in_contact = surface(contact_truth) >= 0.5
+    sticking = in_contact & (surface(stick_truth) >= 0.5)
+    image = cam.render(truth, sol.vertices_mm)
+    mask = cam.render(mesh, mesh.vertices).mask
+    depth = np.where(mask, image.depth_mm, 0.0).astype(np.float32)
+    intrusion = indenter.intrusion_mm(cam.pixel_centres_mm().reshape(-1, 2), pose)
+    floor = np.maximum(intrusion.reshape(depth.shape), 0.0)
+    detail = np.where(mask, np.maximum(depth, floor), 0.0).astype(np.float32)
+    info = sol.info
+    return ContactSample(
+        depth_mm=depth,
+        depth_detail_mm=detail,
+        mask=mask,
+        vertices_mm=vertices.astype(np.float32),
+        rest_vertices_mm=mesh.vertices.astype(np.float32),
+        force_n=sol.force_n,
+        contact_mask=in_contact,
+        pressure_kpa=pressure.astype(np.float32),
+        stick_mask=sticking,
+        metadata={
+            **indenter_record(indenter),
+            "pose": pose.model_dump(),
+            "material": material.model_dump(),
+            "model": model,
+            "solver": "resolved",
+            "mesh_hash": mesh.content_hash,
+            "n_nodes": mesh.n_nodes,
+            "truth_mesh": {"n_nodes": int(truth.n_nodes), "n_tets": int(len(truth.tets)),
+                           "fine_spacing_mm": float(info["h_fine_mm"]),
+                           "n_constraints": int(info["n_constraints"])},
+            "max_penetration_mm": sol.max_penetration_mm,
+            "tangential_force_n": [float(v) for v in sol.tangential_force_n],
+            "generator_version": GENERATOR_VERSION,
+            "units": {
+                "depth": "mm", "depth_detail": "mm", "vertices": "mm", "rest_vertices": "mm",
+                "force_n": "N", "pressure_kpa": "kPa", "pose.x_mm": "mm", "pose.y_mm": "mm",
+                "pose.depth_mm": "mm", "pose.theta_deg": "deg", "material.E_mpa": "MPa",
+                "material.nu": "1", "material.mu": "1", "tangential_force_n": "N",
+                "max_penetration_mm": "mm",
+            },
+            "depth": RESOLVED_DEPTH_MEANING,
+            "depth_detail": DEPTH_DETAIL_MEANING,
+            "vertices": "the resolved (truth-mesh) displacement field interpolated at the frozen "
+                        "mesh's nodes",
+            "contact_mask": "sensing nodes where the resolved surface touches the indenter",
+            "stick_mask": "sensing nodes in contact that stick (friction below mu times the "
+                          "normal pressure); the others in contact slip",
+            "mask": "pixel inside the pad's outline",
+            "image": camera_metadata(cam),
+            "frame": SENSOR_FRAME,
+        },
+    )
+
+
 def simulate_contact(
     indenter: Indenter,
     pose: ContactPose,
@@ -175,8 +290,7 @@ def simulate_contact(
         contact_mask=result.contact_mask,
         pressure_kpa=result.pressure_kpa.astype(np.float32),
         metadata={
-            "indenter": indenter.name,
-            "indenter_kind": indenter.kind,
+            **indenter_record(indenter),
             "pose": pose.model_dump(),
             "material": sim.material.model_dump(),
             "formulation": sim.formulation,

@@ -172,10 +172,12 @@ def _write_step(model, meta, bundle: Path, family_onnx: Path, fp32: Path, out: P
 
     t0 = time.perf_counter()
     torch.manual_seed(0)
-    step = AdaptationStep(model).train()
     fp32_model = onnx.load(str(fp32))
     variant = {p.key: p.value for p in onnx.load(str(family_onnx), load_external_data=False).metadata_props}.get(
         "variant", "unknown")
+    from training.export import lateral_lift_of
+
+    step = AdaptationStep(model, lateral=lateral_lift_of(model) if variant.startswith("hybrid") else None).train()
     pmap = map_parameters(step, fp32_model)
     int8 = int8_nodes(fp32_model) if "-int8" in variant else []
 
@@ -223,16 +225,19 @@ def _write_step(model, meta, bundle: Path, family_onnx: Path, fp32: Path, out: P
             "Self-supervised adaptation step of the image-to-mesh model (Zhu et al., 'Self-Supervised "
             "Adaptation'): the predicted mesh's sensing surface is rendered to a depth map by a "
             "differentiable copy of the simulator's depth camera and matched to the image VAE's "
-            "reconstruction of the input, loss = MSE(render(decoder(projection(encoder(I)))), VAE(I)) over "
-            "the pixels the sensor sees. One call = forward + loss; the runtime runs autograd and Adam."),
+            "reconstruction of the input, loss = MSE(render(mesh(I)), VAE(I)) over the pixels the sensor "
+            "sees. One call = forward + loss; the runtime runs autograd and Adam."),
         "sensor_family": "gelslim",
         "mesh_hash": meta["mesh_hash"],
         "n_nodes": pad_n,
         "n_sensing_nodes": int(step.n_plane),
         "files": files,
         "trainable": step.trainable_names(),
-        "frozen": ("lean grid mesh decoder (all its parameters), the displacement scales and backplate mask, "
-                   "the depth renderer, and the VAE filter (filter.onnx: the image VAE as trained)"),
+        "frozen": (("the surface decoder's head, the anchor (the depth map's read at each sensing node)"
+                    + (", the lateral physics lift" if step.lateral is not None else "")
+                    if step.kind == "surface" else "lean grid mesh decoder (all its parameters)")
+                   + ", the displacement scales and backplate mask, the depth renderer, and the VAE filter "
+                   "(filter.onnx: the image VAE as trained)"),
         "inputs": {
             "depth": "[B, 1, 128, 128] float32, mm pushed in, model grid (row 0 = largest y)",
             "target": "[B, 128, 128] float32, mm: VAE(depth) from filter.onnx (or depth itself: no filter)",

@@ -29,22 +29,42 @@ from training.networks.predictor import Predictor
 
 #: Parameter prefixes the step updates: image encoder (convolutions, FC, mean head) and projection.
 TRAINABLE_PREFIXES = ("convs.", "fc.", "mu.", "projection.")
+#: With the surface-anchored decoder: the image encoder and the decoder but its 1 x 1 head (whose
+#: weights carry the folded displacement scale in the ONNX graph).
+SURFACE_TRAINABLE_PREFIXES = ("convs.", "fc.", "mu.", "decoder.fc.", "decoder.skips.", "decoder.ups.", "decoder.convs.")
 
 
 class AdaptationStep(nn.Module):
-    """Image encoder + projection (trainable), mesh decoder (frozen), renderer, loss."""
+    """Image encoder + projection (trainable), mesh decoder (frozen), renderer, loss; or, for a
+    model with the surface-anchored decoder, image encoder + surface decoder (trainable but its
+    head), the anchor (fixed), renderer, loss.
 
-    def __init__(self, model: Predictor, decoder: str = "lean",
-                 pixels_per_triangle: int = DEFAULT_PIXELS_PER_TRIANGLE):
+    decoder : "lean" (the latent path's deployed decoder), "surface", or None (the model's
+    deployed one: "surface" when it has the surface decoder).
+    """
+
+    def __init__(self, model: Predictor, decoder: str | None = None,
+                 pixels_per_triangle: int = DEFAULT_PIXELS_PER_TRIANGLE, lateral: nn.Module | None = None):
         super().__init__()
-        if decoder != "lean":
-            raise ValueError(f"decoder must be 'lean' (the deployed mesh decoder), got {decoder!r}")
+        #: the hybrid graphs' lateral physics lift (fixed), or None
+        self.lateral = lateral
+        decoder = decoder or ("surface" if hasattr(model, "surface_decoder") else "lean")
+        if decoder not in ("lean", "surface"):
+            raise ValueError(f"decoder must be 'lean' or 'surface' (a deployed mesh decoder), got {decoder!r}")
+        self.kind = decoder
         enc = copy.deepcopy(model.image_vae.encoder)
         self.convs, self.fc, self.mu = enc.convs, enc.fc, enc.mu
-        self.projection = copy.deepcopy(model.projection)
-        self.decoder = copy.deepcopy(model.lean_decoder)
-        for p in self.decoder.parameters():
-            p.requires_grad_(False)
+        if decoder == "surface":
+            self.decoder = copy.deepcopy(model.surface_decoder)
+            self.anchor = copy.deepcopy(model.anchor)
+            self.moved = model.cfg.surface.anchor == "moved"
+            self.prefixes = SURFACE_TRAINABLE_PREFIXES
+        else:
+            self.projection = copy.deepcopy(model.projection)
+            self.decoder = copy.deepcopy(model.lean_decoder)
+            self.prefixes = TRAINABLE_PREFIXES
+        for name, p in self.named_parameters():
+            p.requires_grad_(name.startswith(self.prefixes))
         norm = model.norm
         self.register_buffer("depth_scale_mm", norm.depth_scale_mm.detach().clone())
         self.register_buffer("displacement_scale_mm",
@@ -58,12 +78,29 @@ class AdaptationStep(nn.Module):
         self.renderer = DepthRenderer.for_pad(pad, pixels_per_triangle=pixels_per_triangle)
 
     def trainable_names(self) -> list[str]:
-        return [n for n, _ in self.named_parameters() if n.startswith(TRAINABLE_PREFIXES)]
+        return [n for n, _ in self.named_parameters() if n.startswith(self.prefixes)]
 
     def displacement(self, depth_mm: torch.Tensor) -> torch.Tensor:
         """depth (B, 1, R, R) mm -> displacement (B, n, 3) mm."""
-        z = self.mu(self.fc(self.convs(depth_mm / self.depth_scale_mm)))
-        return self.decoder(self.projection(z)) * self.displacement_scale_mm
+        x = depth_mm / self.depth_scale_mm
+        if self.kind == "lean":
+            z = self.mu(self.fc(self.convs(x)))
+            return self.decoder(self.projection(z)) * self.displacement_scale_mm
+        from training.networks.surface_decoder import add_anchor
+
+        maps = []
+        for layer in self.convs:
+            x = layer(x)
+            if not isinstance(layer, nn.Conv2d):
+                maps.append(x)
+        z = self.mu(self.fc(x))
+        d = self.decoder(maps, z) * self.displacement_scale_mm
+        uz = self.anchor.read(depth_mm, d, self.moved)
+        if self.lateral is not None:
+            from training.networks.surface_decoder import with_lateral
+
+            d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]))
+        return add_anchor(d, uz)
 
     def forward(self, depth_mm: torch.Tensor, target_mm: torch.Tensor, weight: torch.Tensor):
         """(loss () mm^2, per-map mse (B,) mm^2, rendered (B, R, R) mm, displacement (B, n, 3)

@@ -47,6 +47,16 @@ class ImageEncoder(nn.Module):
     def features(self, x: torch.Tensor) -> torch.Tensor:
         return self.fc(self.convs(x))
 
+    def feature_maps(self, x: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The activation after each stride-2 convolution (R/2 first) and the latent mean (B, latent)."""
+        maps = []
+        h = x
+        for layer in self.convs:
+            h = layer(h)
+            if not isinstance(layer, nn.Conv2d):
+                maps.append(h)
+        return maps, self.mu(self.fc(h))
+
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.features(x)
         return self.mu(h), self.logvar(h)

@@ -90,10 +90,22 @@ class Predictor(nn.Module):
         self.projection = LatentProjection(cfg.projection, cfg.image.latent, cfg.mesh.latent)
         self.norm = Normalisation(rest_vertices_mm, backplate_nodes)
         lv = hierarchy.levels[0]
+        #: Sensing nodes (the first layer of the node order).
+        self.n_plane = len(lv.plane_xy_mm)
         self.lean_decoder = GridDecoder(cfg.lean_decoder, cfg.mesh.latent, lv.plane_xy_mm, lv.n_layers)
         #: Decoder of the deployed path: "coma" (the mesh VAE's) or "lean" (the grid decoder).
         self.deploy_decoder = "coma"
         self.ood_decoder = LeanImageDecoder(cfg.ood_decoder, cfg.image.latent, cfg.image.resolution)
+        if cfg.surface is not None:
+            from training.networks.surface_decoder import SurfaceAnchor, SurfaceDecoder
+
+            self.surface_decoder = SurfaceDecoder(cfg.surface, cfg.image.widths, cfg.image.latent,
+                                                  cfg.image.resolution, lv.plane_xy_mm, lv.n_layers)
+            self.anchor = SurfaceAnchor(lv.plane_xy_mm, cfg.image.resolution, cfg.surface.half_extent_mm)
+            self.deploy_decoder = "surface"
+        #: With the surface decoder: the sensing nodes' lateral displacement from the physics lift of
+        #: their u_z instead of the decoder's (:meth:`use_lateral_lift`; the "hybrid" export variants).
+        self.lateral_lift = None
 
     # -- the deployed path, step by step -------------------------------------------------------
     def normalise_depth(self, depth_mm: torch.Tensor) -> torch.Tensor:
@@ -109,9 +121,34 @@ class Predictor(nn.Module):
         decoder = self.lean_decoder if self.deploy_decoder == "lean" else self.mesh_vae.decoder
         return self.norm.denormalise_displacement(decoder(z_mesh))
 
+    def surface_displacement_normalised(self, depth_mm: torch.Tensor, maps=None, z=None) -> torch.Tensor:
+        """The surface-anchored path in units of the displacement scale (N, n, 3): the residual of
+        the surface decoder plus the anchor (u_z of the sensing nodes read off the depth map) on the
+        sensing layer's z. ``maps``, ``z``: the encoder's feature maps and latent when computed."""
+        if maps is None:
+            maps, z = self.image_vae.encoder.feature_maps(self.normalise_depth(depth_mm))
+        from training.networks.surface_decoder import add_anchor, with_lateral
+
+        residual = self.surface_decoder(maps, z)
+        scale = self.norm.displacement_scale_mm
+        uz = self.anchor.read(depth_mm, residual * scale, self.cfg.surface.anchor == "moved")
+        if self.lateral_lift is not None:
+            residual = with_lateral(residual, self.lateral_lift(uz + residual[:, : self.n_plane, 2] * scale[2]) / scale[:2])
+        return add_anchor(residual, uz / scale[2])
+
+    def use_lateral_lift(self, lift) -> None:
+        """Take the sensing nodes' lateral displacement from ``lift``
+        (:class:`training.networks.lift.LateralLift`: u_z -> x, y by the pad's FEM); None: the decoder's."""
+        if lift is not None and not hasattr(self, "surface_decoder"):
+            raise ValueError("the lateral lift completes the surface decoder; this model has none")
+        self.lateral_lift = lift
+
     def forward(self, depth_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """depth (N, 1, R, R) mm -> (vertices (N, n, 3) mm, displacement (N, n, 3) mm)."""
-        disp = self.decode_displacement(self.project(self.encode_image(self.normalise_depth(depth_mm))))
+        if self.deploy_decoder == "surface":
+            disp = self.norm.denormalise_displacement(self.surface_displacement_normalised(depth_mm))
+        else:
+            disp = self.decode_displacement(self.project(self.encode_image(self.normalise_depth(depth_mm))))
         return self.norm.rest_vertices_mm + disp, disp
 
     # -- out-of-distribution score -------------------------------------------------------------

@@ -9,6 +9,7 @@ only when the person accepts it (:mod:`calibration.wizard.wizard`).
 from __future__ import annotations
 
 from calibration.wizard.steps.camera import step_camera
+from calibration.wizard.steps.discrepancy import step_discrepancy
 from calibration.wizard.steps.fem import step_fem
 from calibration.wizard.steps.plugin import step_plugin
 from calibration.wizard.steps.presses import step_presses
@@ -17,4 +18,5 @@ from calibration.wizard.steps.shading import step_shading
 
 #: Step functions by name, in order.
 STEP_FUNCTIONS = {"reference": step_reference, "camera": step_camera, "presses": step_presses,
-                  "shading": step_shading, "fem": step_fem, "plugin": step_plugin}
+                  "shading": step_shading, "fem": step_fem, "plugin": step_plugin,
+                  "discrepancy": step_discrepancy}

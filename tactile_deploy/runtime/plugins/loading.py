@@ -108,6 +108,10 @@ class SensorPlugin:
         if adapted and active is None:
             raise PluginError(f"plugin {self.name!r} has no adapted model; run without asking "
                               "for the adapted model, or adapt one first (tactile-deploy adapt)")
+        if not adapted and self.manifest.model is None:
+            raise PluginError(f"plugin {self.name!r} has no learned model (field 'model' is "
+                              "null): its meshes come from the physics lift of the pad; run with "
+                              "--mesh physics (the default for such a plugin)")
         return active if adapted else self.verified_path("model")
 
     def adapted_model_path(self) -> Path | None:
@@ -118,10 +122,12 @@ class SensorPlugin:
             rec = active_version(self.folder)
         except ValueError as e:
             raise PluginError(f"plugin {self.name!r}: {e}") from None
-        if rec is not None and rec.family_model_sha256 != self.manifest.model.sha256:
+        if rec is not None and (self.manifest.model is None
+                                or rec.family_model_sha256 != self.manifest.model.sha256):
             log.warning("plugin %r: adapted version %d was made from another family model (sha256 %s..., now "
                         "%s...); using the plugin's own model - adapt again for the new one", self.name,
-                        rec.version, rec.family_model_sha256[:12], self.manifest.model.sha256[:12])
+                        rec.version, rec.family_model_sha256[:12],
+                        "none" if self.manifest.model is None else self.manifest.model.sha256[:12])
         elif rec is not None:
             path = (self.folder / rec.model).resolve()
             if not path.is_file() or file_sha256(path) != rec.sha256:

@@ -24,6 +24,7 @@ from pydantic import (
 from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.imaging.camera_mapping import CameraMapping, OutputGrid
 from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.runtime.drift import ReferenceRange
 from tactile_deploy.runtime.sources.config import SourceConfig
 
 #: Version of the manifest format this code reads and writes.
@@ -88,16 +89,19 @@ class PluginManifest(StrictModel):
                       description="Plugin name (lower case, digits, '-' and '_').")
     description: str = Field("", description="One line about the sensor.")
     family: FamilySpec = Field(description="Sensor family and its pad mesh.")
-    model: FileRef = Field(description="ONNX model of the family: depth (N, 1, 128, 128) mm -> "
-                           "vertices (N, n, 3) mm (docs/onnx_contract.md).")
+    model: FileRef | None = Field(
+        None, description="ONNX model of the family: depth (N, 1, 128, 128) mm -> vertices "
+        "(N, n, 3) mm (docs/onnx_contract.md); null when the family has no learned model yet: "
+        "meshes then come from the physics lift of the pad (`run --mesh physics`).")
     adapted_model: FileRef | None = Field(
         None, description="Optional model adapted to this very sensor; used instead of `model` "
         "unless the user asks for the family model.")
     camera: CameraMapping = Field(description="Camera mapping: lens, homography to the sensing "
                                   "plane, and the imaging grid the shading model works on.")
     depth_grid: OutputGrid = Field(default_factory=OutputGrid,
-                                   description="Grid of the model's input depth map: +-17.5 mm, "
-                                   "128 x 128, row 0 at the largest y.")
+                                   description="Grid of the depth maps: the pad family's depth "
+                                   "grid (the GelSlim model's: +-17.5 mm, 128 x 128), row 0 at "
+                                   "the largest y.")
     shading: FileRef = Field(description="Shading model (.npz with JSON header) fitted on frames "
                              "rectified onto the camera's imaging grid.")
     readout: FileRef | None = Field(
@@ -124,20 +128,25 @@ class PluginManifest(StrictModel):
         "(None: the model's own threshold from its metadata).")
     provenance: dict[str, str] = Field(default_factory=dict,
                                        description="How the plugin was made (tool, date, inputs).")
+    reference_range: ReferenceRange | None = Field(
+        None, description="What the calibration saw of the no-contact image (illumination "
+        "drift, noise): `tactile-deploy run` warns when frames drift beyond it.")
 
     @model_validator(mode="after")
     def _check(self) -> PluginManifest:
-        if self.depth_grid != MODEL_GRID:
-            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()}, got "
-                             f"{self.depth_grid.model_dump()}")
+        if self.model is not None and self.depth_grid != MODEL_GRID:
+            raise ValueError(f"depth_grid must be the model grid {MODEL_GRID.model_dump()} (the "
+                             f"learned model's input), got {self.depth_grid.model_dump()}")
         return self
 
     def files(self) -> dict[str, FileRef]:
         """Every file reference of the manifest, by field name."""
-        out = {"model": self.model, "shading": self.shading,
+        out = {"shading": self.shading,
                "reference_frame": self.reference_frame,
                "noise_reference": self.noise_reference, "demo_clip": self.demo_clip,
                "topology": self.topology}
+        if self.model is not None:
+            out["model"] = self.model
         if self.adapted_model is not None:
             out["adapted_model"] = self.adapted_model
         if self.readout is not None:

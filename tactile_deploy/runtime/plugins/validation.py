@@ -9,6 +9,7 @@ from pathlib import Path
 
 from tactile_deploy.onnx_runtime.contract import check_model_contract
 from tactile_deploy.pad.asset import load_pad
+from tactile_deploy.pad.family import FAMILIES
 from tactile_deploy.runtime.plugins.discovery import find_plugin
 from tactile_deploy.runtime.plugins.loading import SensorPlugin
 from tactile_deploy.runtime.plugins.manifest import PluginError, PluginManifest, load_manifest
@@ -66,9 +67,10 @@ def validate_plugin(name_or_path: str | os.PathLike, check_model: bool = True) -
     attempt("demo clip", lambda: _check_demo(plugin))
     attempt("topology", lambda: plugin.topology)
     if check_model:
-        attempt("model contract", lambda: check_model_contract(
-            plugin.verified_path("model"), manifest.family.mesh_hash, what=f"plugin "
-            f"{manifest.name!r} model"))
+        if manifest.model is not None:
+            attempt("model contract", lambda: check_model_contract(
+                plugin.verified_path("model"), manifest.family.mesh_hash, what=f"plugin "
+                f"{manifest.name!r} model"))
         def adapted_contract():
             path = plugin.adapted_model_path()
             if path is not None:
@@ -89,6 +91,12 @@ def _check_family(plugin: SensorPlugin) -> None:
             f"plugin {plugin.name!r}: field 'family.mesh_hash' is {fam.mesh_hash[:16]}..., but "
             f"the pad {fam.pad} v{fam.pad_version} installed here has {mesh.content_hash[:16]}"
             "...; this plugin was made for another pad mesh: rebuild it for this one")
+    family = FAMILIES.get(fam.pad)
+    grid = plugin.manifest.depth_grid
+    if family is not None and grid != family.depth_grid:
+        raise PluginError(
+            f"plugin {plugin.name!r}: field 'depth_grid' is {grid.model_dump()}, the pad "
+            f"{fam.pad}'s depth grid is {family.depth_grid.model_dump()}; rebuild the plugin")
 
 
 def _check_demo(plugin: SensorPlugin) -> None:

@@ -30,6 +30,10 @@ REGISTRY = {
     "rotation_offset": "rotation_offset:RotationOffset",
     "poisson_drift": "poisson_drift:PoissonDrift",
     "compression_set": "compression_set:CompressionSet",
+    "gain_gradient": "gain_gradient:GainGradient",
+    "blur": "blur:Blur",
+    "shading_saturation": "shading_saturation:ShadingSaturation",
+    "friction": "friction:Friction",
 }
 
 

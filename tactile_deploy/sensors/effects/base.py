@@ -19,7 +19,10 @@ virtual`)::
               intrusion_mm(delta, xy, pose) the indenter's intrusion below z = 0 at points
     material  correct_contact(sim, delta, result)  the FEM solution (e.g. large-strain terms)
     optics    optics(model)                the optics model's parameters
+              view_points(xy, camera)      (depth maps) the pad point a map made through a
+                                           pipeline calibrated on ``camera`` shows at xy
     camera    frame_gain(renderer, rng)    per-frame multiplicative change of the radiance
+    readout   readout_map(depth, xy)       the depth map a sensor's depth pipeline reports
 
 Effects are registered by name (:mod:`tactile_deploy.sensors.effects`) and built from JSON as
 ``{"name": ..., "params": {...}}``.
@@ -32,7 +35,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-Stage = Literal["geometry", "contact", "material", "optics", "camera"]
+Stage = Literal["geometry", "contact", "material", "optics", "camera", "readout"]
 Kind = Literal["mechanical", "optical"]
 
 
@@ -76,6 +79,11 @@ class Effect:
         """``{"name": ..., "params": {...}}``: the JSON form of this effect."""
         return {"name": self.name, "params": self.params.model_dump()}
 
+    @classmethod
+    def prepare(cls, simulator) -> None:
+        """Build what this effect's solves need on ``simulator`` now (e.g. before forking
+        worker processes that share it); nothing by default."""
+
     # ----------------------------------------------------------------- hooks (identity)
     def rest_height_mm(self, xy_mm: np.ndarray) -> np.ndarray:
         """Change of the rest height of the sensing surface at sensor points (k, 2) -> (k,) mm."""
@@ -101,3 +109,27 @@ class Effect:
         """Per-frame multiplicative gain of the radiance: None (no change), a (3,) per-channel
         gain or an (H, W, 3) / (H, W, 1) map, dimensionless."""
         return None  # noqa: RET501 (the hook's documented "no change")
+
+    # optics effects that move features: how a depth map made through a pipeline calibrated on
+    # the nominal camera sees them (:mod:`tactile_deploy.sensors.depth_view`)
+    #: True for optics effects that change where the camera sees the pad (they define
+    #: :meth:`view_points`).
+    moves_view: ClassVar[bool] = False
+
+    def view_points(self, xy_mm: np.ndarray, camera) -> np.ndarray:
+        """Sensor-plane points (k, 2) mm that a depth map made by a pipeline calibrated on the
+        nominal ``camera`` (a ``CameraMapping``) shows at the plane points ``xy_mm`` (k, 2) when
+        this effect is present; identity by default."""
+        return np.asarray(xy_mm, np.float64)
+
+    @property
+    def depth_gain_exponent(self) -> float:
+        """How a depth map's values follow the view's local stretch ``J = dq/dp``: they are
+        multiplied by ``det(J) ** (-exponent / 2)`` (1: a pipeline that integrates measured
+        slopes over the calibrated grid; 0: the map resampled, values unchanged)."""
+        return float(getattr(self.params, "depth_gain_exponent", 0.0))
+
+    def readout_map(self, depth_mm: np.ndarray, xy_mm: np.ndarray) -> np.ndarray:
+        """The depth map (H, W) mm a sensor's depth pipeline reports for the surface's map
+        ``depth_mm`` (H, W) mm, pixel centres ``xy_mm`` (H, W, 2) sensor frame; identity."""
+        return depth_mm

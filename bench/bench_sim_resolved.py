@@ -1,0 +1,122 @@
+"""Resolved contact solver throughput on the CPU (`tactile-deploy bench sim-resolved`).
+
+    python bench/bench_sim_resolved.py [--n 6] [--workers 2]
+
+Random primitive contacts (the library's primitives, 0.3-1.0 mm deep, within 8 mm of the
+centre) solved by :class:`tactile_deploy.fem.truth.TruthSolver` on the shipped pad, in
+``--workers`` processes, for three settings measured in the same run: the linear gel
+(frictionless, the baseline), the neo-Hookean gel (frictionless) and the neo-Hookean gel with
+Coulomb friction (mu 0.8). Reports contacts/s, seconds per contact, truth-mesh sizes and
+solver work, and writes the section ``sim-resolved`` of BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+SETTINGS = {
+    "linear, frictionless (baseline)": ("linear", "frictionless"),
+    "neo-Hookean, frictionless": ("neo-hookean", "frictionless"),
+    "neo-Hookean, Coulomb mu 0.8": ("neo-hookean", "coulomb"),
+}
+
+
+def _contacts(n: int, seed: int):
+    import numpy as np
+
+    from tactile_deploy.indenters import list_indenters
+
+    rng = np.random.default_rng(seed)
+    names = list_indenters("primitive")
+    return [(names[int(rng.integers(len(names)))], float(rng.uniform(-8, 8)),
+             float(rng.uniform(-8, 8)), float(rng.uniform(0, 360)), float(rng.uniform(0.3, 1.0)))
+            for _ in range(n)]
+
+
+def _solve(args):
+    model, friction, (name, x, y, theta, depth) = args
+    from threadpoolctl import threadpool_limits
+
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.truth import TruthSolver
+    from tactile_deploy.indenters import ContactPose, get_indenter
+    from tactile_deploy.pad.geometry import PadGeometry
+
+    with threadpool_limits(1):
+        solver = TruthSolver(PadGeometry(), Material(E_mpa=0.3, nu=0.48, friction=friction, mu=0.8),
+                             model=model)
+        t0 = time.perf_counter()
+        sol = solver.solve(get_indenter(name), ContactPose(x_mm=x, y_mm=y, theta_deg=theta,
+                                                            depth_mm=depth))
+        dt = time.perf_counter() - t0
+    return {"seconds": dt, "nodes": sol.info["n_nodes"], "factorizations": sol.info["factorizations"],
+            "penetration_um": 1e3 * sol.max_penetration_mm,
+            "name": name, "depth": depth}
+
+
+def run(n: int = 6, workers: int = 2, seed: int = 5) -> dict:
+    contacts = _contacts(n, seed)
+    out = {}
+    for label, (model, friction) in SETTINGS.items():
+        t0 = time.perf_counter()
+        with ProcessPoolExecutor(workers) as pool:
+            rows = list(pool.map(_solve, [(model, friction, c) for c in contacts]))
+        wall = time.perf_counter() - t0
+        out[label] = {"contacts_per_s": n / wall, "rows": rows, "wall_s": wall}
+    return {"n": n, "workers": workers, "settings": out, "load": os.getloadavg()[0]}
+
+
+def markdown(result: dict) -> str:
+    import numpy as np
+
+    from bench.report import machine_line
+
+    base = result["settings"]["linear, frictionless (baseline)"]["contacts_per_s"]
+    lines = [
+        "## Resolved contact solver (`tactile-deploy bench sim-resolved`)",
+        "",
+        f"CPU: {machine_line()}; {result['workers']} worker processes (one thread each), "
+        f"{result['n']} random primitive contacts (0.3-1.0 mm deep) on the GelSlim pad, E 0.3 MPa, "
+        f"nu 0.48; load average {result['load']:.1f} on the machine's 2 cores when finished.",
+        "",
+        "| setting | contacts/s | vs baseline | median s per contact | median truth nodes | "
+        "Newton steps (one factorisation each) per contact | largest penetration at constraint points (um) |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for label, r in result["settings"].items():
+        rows = r["rows"]
+        lines.append(
+            f"| {label} | {r['contacts_per_s']:.3f} | {r['contacts_per_s'] / base:.2f}x | "
+            f"{np.median([x['seconds'] for x in rows]):.1f} | {np.median([x['nodes'] for x in rows]):.0f} | "
+            f"{np.mean([x['factorizations'] for x in rows]):.1f} | "
+            f"{max(x['penetration_um'] for x in rows):.3f} |")
+    lines += ["", "Target: >= 2 contacts/s on 2 CPU cores, resolved, large deformation, Coulomb."]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=6)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    result = run(args.n, args.workers)
+    text = markdown(result)
+    print(text)
+    if not args.no_write:
+        from bench.report import write_section
+
+        write_section("sim-resolved", text)
+    return result
+
+
+if __name__ == "__main__":
+    main()

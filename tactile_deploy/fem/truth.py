@@ -1,0 +1,819 @@
+"""Resolved contact of a rigid indenter with the gel: the reference ("truth") solver.
+
+Data flow of :meth:`TruthSolver.solve`::
+
+    indenter + pose --(intrusion footprint)--> refinement region, fine spacing
+        --> truth mesh (tactile_deploy.fem.truth_mesh: refined where contact can occur)
+        --> contact constraints on the continuous surface (below)
+        --> augmented-Lagrangian Newton solve (neo-Hookean or linear gel, Coulomb friction)
+        --> TruthSolution (truth-mesh displacements, nodal contact forces, stick/slip)
+
+Contact (sensor frame, mm; the indenter moves only along -z). The indenter's lower surface is
+``z = -delta(x, y)`` (``delta`` = its intrusion below the rest surface, from the indenter's
+envelope). Two families of gap constraints ``g >= 0`` keep the gel's piecewise-linear surface
+below it everywhere:
+
+* **gel points**: every sensing node p of the truth mesh near the contact,
+  ``g = -delta(p_x, p_y) - p_z`` at its *current* position (its gradient is the indenter's
+  normal, so the contact traction is normal to the indenter);
+* **indenter points**: the indenter's surface sampled over the contact (every envelope pixel on
+  a sharp convex feature such as a cone tip, an edge or a punch rim, and a grid at a third of the
+  fine spacing elsewhere): ``g = z_i - z_gel(x_i, y_i)``, the gel's current surface height under
+  the point, so a feature between nodes cannot pass through a triangle.
+
+``model="linear"`` is the small-strain limit: linear material, gaps along z at the rest
+positions. Friction (per sensing node, tangent plane of the indenter at the node): frictionless,
+stick (no tangential displacement where in contact), or Coulomb with coefficient mu (traction
+``|t_T| <= mu t_N``, slip opposite to the traction). Slip is measured from the rest position
+(one load step, the indenter pressed straight down).
+
+The complementarity problem is solved exactly to a tolerance (no penalty stiffness remains in
+the solution): an augmented Lagrangian with multipliers updated after each Newton step
+(``lambda <- max(0, lambda - rho g)``; friction: ``t <- proj(t - rho_T u_T)`` onto the Coulomb
+disc), Newton on the augmented energy with a backtracking line search, until the largest
+penetration, the largest change of the multipliers and the force residual are below their
+tolerances.
+
+Units: mm, MPa, N. The solution is computed at the given E (forces scale with E).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_map
+from tactile_deploy.fem.hyperelastic import gel_model
+from tactile_deploy.fem.material import Material
+from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order
+from tactile_deploy.fem.truth_mesh import build_truth_mesh
+from tactile_deploy.pad.geometry import PadGeometry
+from tactile_deploy.pad.mesh import PadMesh
+
+log = logging.getLogger(__name__)
+
+#: Largest fine spacing of a truth mesh: the depth-camera pixel (35 mm / 128).
+H_FINE_MAX_MM = 0.27
+#: Fine spacing relative to the equivalent radius of the indenter's footprint.
+H_FINE_PER_RADIUS = 1.0 / 10.0
+#: Smallest fine spacing.
+H_FINE_MIN_MM = 0.05
+
+
+class TruthSolveError(RuntimeError):
+    """The nonlinear contact iterations did not converge (message names the figures)."""
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """Tolerances and limits of the semismooth Newton iterations."""
+
+    penetration_tol_mm: float = 1e-5  # largest penetration at convergence
+    force_tol: float = 1e-6  # largest change of a slip force, relative to the total force
+    max_iterations: int = 60  # Newton steps per load step
+    step_tol: float = 1e-9  # converged when the largest step is below this x depth
+    floor_tol: float = 1e-6  # ... or below this x depth and no longer shrinking (round-off floor)
+    step_strain: float = 0.1  # load-step depth as a fraction of the pad thickness (large strain)
+
+
+@dataclass
+class TruthSolution:
+    """Resolved contact on the truth mesh.
+
+    mesh : PadMesh, the truth mesh (sensor frame, mm)
+    displacements_mm : (n, 3) float64
+    contact_forces_n : (n_plane, 3) float64, force of the indenter on each sensing node, N
+    normal_force_n : (n_plane,) float64, its component along the indenter normal (>= 0), N
+    in_contact : (n_plane,) bool, sensing nodes touching the indenter
+    sticking : (n_plane,) bool, nodes in contact whose friction is below mu times the normal
+        force (all contact nodes for ``stick``, none for ``frictionless``)
+    force_n : float, total force pressing the pad along -z (compression > 0), N
+    tangential_force_n : (2,) float64, total x, y force of the indenter on the gel, N
+    max_penetration_mm : float, largest penetration over all constraint points
+    iterations : int
+    info : dict, solver figures
+    """
+
+    mesh: PadMesh
+    displacements_mm: np.ndarray
+    contact_forces_n: np.ndarray
+    normal_force_n: np.ndarray
+    in_contact: np.ndarray
+    sticking: np.ndarray
+    force_n: float
+    tangential_force_n: np.ndarray
+    max_penetration_mm: float
+    iterations: int
+    info: dict = field(default_factory=dict)
+
+    @property
+    def vertices_mm(self) -> np.ndarray:
+        return self.mesh.vertices + self.displacements_mm
+
+    def pressure_kpa(self) -> np.ndarray:
+        """Normal contact pressure at the sensing nodes, (n_plane,) kPa (lumped areas)."""
+        return 1e3 * self.normal_force_n / self.mesh.sensing_nodal_areas_mm2()
+
+
+# --------------------------------------------------------------------------------- geometry
+class IntrusionField:
+    """The indenter's intrusion ``delta(x, y)`` (mm) below the rest surface and its gradient.
+
+    ``fn(xy (k, 2)) -> (k,)`` mm, -inf where the indenter does not cover the point.
+    """
+
+    def __init__(self, fn, step_mm: float = 1e-4):
+        self.fn = fn
+        self.step = step_mm
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        return np.asarray(self.fn(np.asarray(xy, np.float64)), np.float64)
+
+    @np.errstate(invalid="ignore")
+    def with_gradient(self, xy: np.ndarray):
+        """(delta (k,), grad (k, 2)) by central differences (one-sided at a footprint edge)."""
+        xy = np.asarray(xy, np.float64)
+        d = self(xy)
+        h = self.step
+        grad = np.zeros((len(xy), 2))
+        for c in range(2):
+            e = np.zeros(2)
+            e[c] = h
+            dp, dm = self(xy + e), self(xy - e)
+            g = (dp - dm) / (2 * h)
+            g = np.where(np.isfinite(dp) & ~np.isfinite(dm), (dp - d) / h, g)
+            g = np.where(~np.isfinite(dp) & np.isfinite(dm), (d - dm) / h, g)
+            grad[:, c] = np.where(np.isfinite(g), g, 0.0)
+        return d, grad
+
+
+def indenter_field(indenter, pose) -> IntrusionField:
+    """Intrusion field of a library indenter (``tactile_deploy.indenters``) at ``pose``."""
+    return IntrusionField(lambda xy: indenter.intrusion_mm(xy, pose))
+
+
+def footprint(field_: IntrusionField, geometry: PadGeometry, pitch_mm: float = 0.05,
+              centre_xy=(0.0, 0.0), radius_mm: float | None = None):
+    """Points (k, 2) of a ``pitch_mm`` grid where the indenter reaches below the rest surface,
+    and their intrusion (k,) mm. Searched within ``radius_mm`` of ``centre_xy`` (default: the
+    whole pad)."""
+    half = geometry.half_extent_mm
+    cx, cy = centre_xy
+    r = half if radius_mm is None else radius_mm
+    xs = np.arange(max(cx - r, -half), min(cx + r, half) + pitch_mm, pitch_mm)
+    ys = np.arange(max(cy - r, -half), min(cy + r, half) + pitch_mm, pitch_mm)
+    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    pts = pts[geometry.contains_xy(pts[:, 0], pts[:, 1])]
+    d = field_(pts)
+    inside = d > 0
+    return pts[inside], d[inside]
+
+
+def fine_spacing(footprint_area_mm2: float) -> float:
+    """Fine spacing (mm) of a truth mesh for a footprint of this area."""
+    radius = math.sqrt(max(footprint_area_mm2, 0.0) / math.pi)
+    return float(np.clip(H_FINE_PER_RADIUS * radius, H_FINE_MIN_MM, H_FINE_MAX_MM))
+
+
+# ------------------------------------------------------------------------------ locating
+def locate_in_triangles(points_xy: np.ndarray, tri_xy: np.ndarray, k: int = 12):
+    """Triangle index (q,) and barycentric coordinates (q, 3) of points in a planar
+    triangulation given by its corner positions ``tri_xy`` (t, 3, 2). A point outside every
+    triangle gets the nearest one (coordinates then extrapolate)."""
+    centroids = tri_xy.mean(axis=1)
+    k = min(k, len(tri_xy))
+    _, cand = cKDTree(centroids).query(points_xy, k=k)
+    cand = cand.reshape(len(points_xy), k)
+    a, b, c = tri_xy[cand, 0], tri_xy[cand, 1], tri_xy[cand, 2]  # (q, k, 2)
+    v0, v1 = b - a, c - a
+    v2 = points_xy[:, None, :] - a
+    det = v0[..., 0] * v1[..., 1] - v0[..., 1] * v1[..., 0]
+    l1 = (v2[..., 0] * v1[..., 1] - v2[..., 1] * v1[..., 0]) / det
+    l2 = (v0[..., 0] * v2[..., 1] - v0[..., 1] * v2[..., 0]) / det
+    bary = np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
+    worst = bary.min(axis=-1)
+    best = np.argmax(worst, axis=1)
+    rows = np.arange(len(points_xy))
+    return cand[rows, best], bary[rows, best]
+
+
+# ------------------------------------------------------------------------------- the solver
+@dataclass
+class _Constraints:
+    """Linearised gap constraints: gap (c,), nodes (c, 3) sensing-node indices, weights
+    (c, 3, 3) dgap/du per node and component, node_share (c, 3) weight of each node in the
+    normal force (sums to 1)."""
+
+    gap: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    share: np.ndarray
+
+
+class TruthSolver:
+    """Resolved large-deformation frictional contact on per-contact truth meshes.
+
+    Parameters
+    ----------
+    geometry : PadGeometry — the pad (disc or box, flat), bonded to the backplate.
+    material : Material — E (MPa), nu, mu and the friction law.
+    model : "neo-hookean" (default) or "linear" (small-strain limit).
+    supports : Supports — how the pad is held (default: bonded backplate, free sides).
+    h_coarse_mm : float — largest in-plane spacing of the truth mesh.
+    settings : SolveSettings
+    """
+
+    def __init__(self, geometry: PadGeometry, material: Material = Material(),
+                 model: str = "neo-hookean", supports: Supports = SENSOR_SUPPORTS,
+                 h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings()):
+        if model not in ("neo-hookean", "linear"):
+            raise ValueError(f"model must be 'neo-hookean' or 'linear', got {model!r}")
+        self.geometry = geometry
+        self.material = material
+        self.model = model
+        self.supports = supports
+        self.h_coarse_mm = h_coarse_mm
+        self.settings = settings
+
+    # -------------------------------------------------------------------------- meshing
+    def mesh_for(self, field_: IntrusionField, h_fine_mm: float | None = None,
+                 region_xy: np.ndarray | None = None) -> tuple[PadMesh, float, np.ndarray]:
+        """Truth mesh for a contact: (mesh, fine spacing mm, footprint points (k, 2))."""
+        pts, _ = footprint(field_, self.geometry, pitch_mm=0.05)
+        if len(pts) == 0:
+            raise ValueError("the indenter does not reach below the rest surface anywhere on "
+                             "the pad: press deeper or move it onto the pad")
+        if h_fine_mm is None:
+            h_fine_mm = fine_spacing(len(pts) * 0.05**2)
+        if region_xy is None:
+            # The fine region: the footprint grown by 3 fine spacings (lateral slide, rim).
+            margin = max(3.0 * h_fine_mm, 0.3)
+            region_xy = _dilate(pts, margin, h_fine_mm)
+        tip = deepest_point(field_, pts, self.geometry)
+        # A sharp tip (the intrusion bends by more than 0.3 in slope across it): triangles
+        # around it a quarter of the fine spacing, so their chords follow a cone's flanks.
+        probe = 0.025
+        ring = tip + probe * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
+        sharp = float(field_(tip[None])[0] - np.mean(field_(ring))) > 0.3 * probe
+        spots = [(float(tip[0]), float(tip[1]), 0.25 * h_fine_mm)] if sharp else []
+        mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
+                                surface_nodes_xy=tip[None], point_sizes=spots)
+        return mesh, h_fine_mm, pts
+
+    def solve(self, indenter, pose, **kwargs) -> TruthSolution:
+        """Contact of a library ``indenter`` pressed at ``pose`` (:class:`ContactPose`)."""
+        return self.solve_field(indenter_field(indenter, pose), **kwargs)
+
+    def solve_field(self, field_: IntrusionField, mesh: PadMesh | None = None,
+                    h_fine_mm: float | None = None, features: np.ndarray | None = None
+                    ) -> TruthSolution:
+        """Contact for an intrusion field; ``mesh`` overrides the automatic truth mesh,
+        ``features`` (k, 2) adds indenter points (sensor frame, mm) to the constraints."""
+        if mesh is None:
+            mesh, h_fine_mm, fp = self.mesh_for(field_, h_fine_mm)
+        else:
+            fp, _ = footprint(field_, self.geometry, pitch_mm=0.05)
+            if h_fine_mm is None:
+                h_fine_mm = float(np.sqrt(mesh.sensing_nodal_areas_mm2().min() * 2.0))
+        return _Solve(self, mesh, field_, h_fine_mm, fp, features).run()
+
+
+def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,
+                  pitch_mm: float = 0.005) -> np.ndarray:
+    """The sensor-frame point (2,) mm where the indenter reaches deepest (a cone's tip), found
+    on the footprint grid ``fp`` and refined on a ``pitch_mm`` grid around it. The truth mesh
+    puts a node there, so that a tip rests on a node rather than inside a triangle."""
+    d = field_(fp)
+    best = fp[int(np.argmax(d))]
+    step = float(np.min(np.abs(np.diff(np.unique(fp[:, 0]))))) if len(np.unique(fp[:, 0])) > 1 else 0.05
+    xs = best[0] + np.arange(-step, step + pitch_mm / 2, pitch_mm)
+    ys = best[1] + np.arange(-step, step + pitch_mm / 2, pitch_mm)
+    grid = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    grid = grid[geometry.contains_xy(grid[:, 0], grid[:, 1], margin_mm=0.05)]
+    if len(grid) == 0:
+        return best
+    return grid[int(np.argmax(field_(grid)))]
+
+
+def _dilate(points: np.ndarray, margin: float, pitch: float) -> np.ndarray:
+    """Points of a ``pitch`` grid within ``margin`` of ``points`` (k, 2)."""
+    lo, hi = points.min(0) - margin, points.max(0) + margin
+    xs = np.arange(lo[0], hi[0] + pitch, pitch)
+    ys = np.arange(lo[1], hi[1] + pitch, pitch)
+    grid = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    d, _ = cKDTree(points).query(grid, distance_upper_bound=margin)
+    return grid[np.isfinite(d)]
+
+
+def feature_points(field_: IntrusionField, fp: np.ndarray, h_fine: float,
+                   geometry: PadGeometry, pitch_mm: float = 0.025) -> np.ndarray:
+    """Points (k, 2) mm of the indenter's sharp convex features over its footprint ``fp``
+    (cone and pyramid tips, edges, punch rims): where the intrusion, sampled on a ``pitch_mm``
+    grid, bends by more than 0.3 in slope between neighbours, thinned to ``h_fine / 2`` apart.
+    Smooth parts need none (the fine mesh follows them within its sag)."""
+    if len(fp) == 0:
+        return np.zeros((0, 2))
+    lo, hi = fp.min(0), fp.max(0)
+    xs = np.arange(lo[0] - pitch_mm, hi[0] + 2 * pitch_mm, pitch_mm)
+    ys = np.arange(lo[1] - pitch_mm, hi[1] + 2 * pitch_mm, pitch_mm)
+    X, Y = np.meshgrid(xs, ys)
+    D = field_(np.stack([X.ravel(), Y.ravel()], 1)).reshape(X.shape)
+    covered = np.isfinite(D)
+    D = np.where(covered, D, -1e3)
+    c = D[1:-1, 1:-1]
+    # Only features inside the footprint (a tip, an edge pointing into the gel); its outline (a
+    # punch's rim, where the indenter's wall rises vertically) is left to the sensing nodes:
+    # constraining a triangle across it would drag the gel below the indenter's face.
+    inner = np.ones_like(c, dtype=bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            inner &= covered[1 + dy: covered.shape[0] - 1 + dy, 1 + dx: covered.shape[1] - 1 + dx]
+    kink = np.zeros_like(c, dtype=bool)
+    diag = pitch_mm * math.sqrt(2.0)
+    for a, b, spacing in ((D[1:-1, :-2], D[1:-1, 2:], pitch_mm), (D[:-2, 1:-1], D[2:, 1:-1], pitch_mm),
+                          (D[:-2, :-2], D[2:, 2:], diag), (D[:-2, 2:], D[2:, :-2], diag)):
+        kink |= (2 * c - a - b) > 0.3 * spacing
+    kink &= (c > 0) & inner
+    pts = np.stack([X[1:-1, 1:-1][kink], Y[1:-1, 1:-1][kink]], 1)
+    depth = c[kink]
+    pts = pts[geometry.contains_xy(pts[:, 0], pts[:, 1])]
+    if len(pts) == 0:
+        return pts
+    # Thin out, deepest first, so that a tip keeps its lowest point.
+    order = np.argsort(-depth[: len(pts)], kind="stable")
+    pts = pts[order]
+    tree = cKDTree(pts)
+    keep = np.ones(len(pts), bool)
+    for i in range(len(pts)):
+        if keep[i]:
+            near = tree.query_ball_point(pts[i], 0.5 * h_fine)
+            keep[near] = False
+            keep[i] = True
+    return pts[keep]
+
+
+class _Solve:
+    """One semismooth (primal-dual active-set) Newton solve: the state of its iterations."""
+
+    def __init__(self, solver: TruthSolver, mesh: PadMesh, field_: IntrusionField,
+                 h_fine: float, fp: np.ndarray, features):
+        self.s = solver
+        self.mesh = mesh
+        self.field = field_
+        self.h_fine = h_fine
+        mat = solver.material
+        self.geometric = solver.model != "linear"
+        self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu)
+        self.dofs = _dof_map(mesh, solver.supports)
+        n_plane = mesh.n_plane
+        X = mesh.vertices[:n_plane]
+        # Candidate sensing nodes: near the footprint.
+        if len(fp):
+            dist, _ = cKDTree(fp).query(X[:, :2])
+        else:
+            dist = np.full(n_plane, np.inf)
+        reach = 3.0 * h_fine + 0.5
+        self.cand_nodes = np.flatnonzero(dist < reach)
+        pts = feature_points(field_, fp, h_fine, solver.geometry)
+        if features is not None:
+            pts = np.concatenate([pts, np.asarray(features, float).reshape(-1, 2)])
+        self.ind_xy = pts
+        self.ind_z = -field_(pts) if len(pts) else np.zeros(0)
+        keep = np.isfinite(self.ind_z)
+        self.ind_xy, self.ind_z = self.ind_xy[keep], self.ind_z[keep]
+        # Surface triangles that can hold an indenter point.
+        tri = mesh.plane_triangles
+        tri_centroid = X[tri].mean(axis=1)[:, :2]
+        if len(fp):
+            dt, _ = cKDTree(fp).query(tri_centroid)
+        else:
+            dt = np.full(len(tri), np.inf)
+        self.cand_tris = tri[dt < reach + 2 * h_fine]
+        self.areas = mesh.sensing_nodal_areas_mm2()
+        _, shear = mat.lame_mpa
+        # Complementarity constants (N/mm): the stiffness of a node's patch of gel.
+        self.c_node = shear * self.areas[self.cand_nodes] / h_fine
+        self.c_point = shear * h_fine
+        self.n_plane = n_plane
+        self.friction = mat.friction
+        self.mu_f = mat.mu
+        self.lift = 0.0  # the indenter raised by this much (mm) during load steps
+        self.factorizations = 0
+        self.newton_steps = 0
+        self._cand_index = -np.ones(mesh.n_nodes, np.int64)
+        self._cand_index[self.cand_nodes] = np.arange(len(self.cand_nodes))
+        self._init_dof_layout()
+
+    # ------------------------------------------------------------------------ dof layout
+    def _init_dof_layout(self):
+        """Free coordinates grouped by node, and a fill-reducing order of the nodes."""
+        n = self.mesh.n_nodes
+        noc = self.dofs.node_of_col
+        self.k_node = np.bincount(noc, minlength=n)
+        order = np.argsort(noc, kind="stable")
+        start = np.concatenate([[0], np.cumsum(self.k_node)[:-1]])
+        cols = -np.ones((n, 3), np.int64)
+        cols[noc[order], np.arange(len(noc)) - start[noc[order]]] = order
+        self.cols = cols
+        # Full-space direction of each free coordinate, per node: (n, 3, 3), column a = the
+        # direction of the node's a-th coordinate (zero where absent).
+        D = np.zeros((n, 3, 3))
+        valid = cols >= 0
+        D[np.nonzero(valid)[0], :, np.nonzero(valid)[1]] = self.dofs.direction_of_col[cols[valid]]
+        self.D = D
+        # The stiffness couples nodes that share a nodal patch (two rings of tets).
+        tets = self.mesh.tets
+        inc = sp.csr_matrix((np.ones(tets.size), (np.repeat(np.arange(len(tets)), 4), tets.ravel())),
+                            shape=(len(tets), n))
+        ring = (inc.T @ inc).tocsr()
+        ring.data[:] = 1.0
+        perm = nested_dissection_order(ring @ ring)
+        self.node_order = np.arange(n) if perm is None else perm
+        self.ordered = perm is not None
+        self.T_full = self.dofs.T.tocsr()
+
+    # ------------------------------------------------------------------------ constraints
+    def constraints(self, u: np.ndarray) -> _Constraints:
+        X = self.mesh.vertices
+        nodes = self.cand_nodes
+        p = X[nodes] + u[nodes]
+        xy = p[:, :2] if self.geometric else X[nodes, :2]
+        d, grad = self.field.with_gradient(xy)
+        d = d - self.lift
+        covered = np.isfinite(d)
+        gap_n = np.where(covered, -d - p[:, 2], np.inf)
+        w_n = np.zeros((len(nodes), 3, 3))
+        w_n[:, 0, 2] = -1.0
+        if self.geometric:
+            w_n[:, 0, :2] = -grad
+        nodes_n = np.stack([nodes, nodes, nodes], 1)
+        share_n = np.array([[1.0, 0.0, 0.0]]).repeat(len(nodes), 0)
+        # Indenter points against the gel's current surface.
+        tris = self.cand_tris
+        if len(self.ind_xy) and len(tris):
+            P = X[tris] + u[tris]  # (t, 3, 3)
+            locate_xy = P[:, :, :2] if self.geometric else X[tris][:, :, :2]
+            which, bary = locate_in_triangles(self.ind_xy, locate_xy)
+            corners = tris[which]
+            z_gel = np.einsum("qa,qa->q", bary, P[which, :, 2])
+            gap_p = self.ind_z + self.lift - z_gel
+            w_p = np.zeros((len(which), 3, 3))
+            w_p[:, :, 2] = -bary
+            if self.geometric:
+                slope = _triangle_slopes(P[which])  # (q, 2)
+                w_p[:, :, :2] = bary[:, :, None] * slope[:, None, :]
+            share_p = np.clip(bary, 0.0, None)
+            share_p /= share_p.sum(1, keepdims=True)
+        else:
+            gap_p = np.zeros(0)
+            w_p = np.zeros((0, 3, 3))
+            corners = np.zeros((0, 3), np.int64)
+            share_p = np.zeros((0, 3))
+        return _Constraints(
+            gap=np.concatenate([gap_n, gap_p]),
+            nodes=np.concatenate([nodes_n, corners]),
+            weights=np.concatenate([w_n, w_p]),
+            share=np.concatenate([share_n, share_p]),
+        )
+
+    # -------------------------------------------------------------------------- pieces
+    def indenter_normals(self, u: np.ndarray) -> np.ndarray:
+        """Unit normal of the indenter (pointing into the gel, -z side) at each sensing node."""
+        X = self.mesh.vertices[: self.n_plane]
+        n = np.zeros((self.n_plane, 3))
+        n[:, 2] = -1.0
+        if self.geometric:
+            nodes = self.cand_nodes
+            xy = X[nodes, :2] + u[nodes, :2]
+            d, grad = self.field.with_gradient(xy)
+            v = np.column_stack([-grad, -np.ones(len(nodes))])
+            n[nodes] = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return n
+
+    def friction_bound(self, fn: np.ndarray) -> np.ndarray:
+        """Largest tangential force (N) of each candidate node for its normal force fn (N)."""
+        if self.friction == "frictionless":
+            return np.zeros_like(fn)
+        if self.friction == "stick":
+            return np.where(fn > 0, np.inf, 0.0)
+        return self.mu_f * fn
+
+    def _reduction(self, rows: np.ndarray, rhs: np.ndarray, nrows: np.ndarray):
+        """Eliminate the node constraints ``rows`` (k, 3, 3) . du_node = ``rhs`` (k, 3) of the
+        candidate nodes (the first ``nrows`` (k,) rows of each are used).
+
+        Returns (E (3n, m) CSR: du = E y + p for the m reduced coordinates y, ordered by the
+        fill-reducing node order; p (3n,) the particular increment)."""
+        n = self.mesh.n_nodes
+        nodes = self.cand_nodes
+        con = nrows > 0
+        k = self.k_node
+        reduced = k.copy()
+        p_q = np.zeros(self.dofs.n_free)
+        blocks = {}
+        cn = nodes[con]
+        if len(cn):
+            A = np.einsum("kij,kja->kia", rows[con], self.D[cn])  # (c, 3 rows, 3 coords)
+            mask = (np.arange(3)[None, :] < nrows[con][:, None]).astype(float)
+            A = A * mask[:, :, None]
+            # A node's absent coordinates (held by its supports) are pinned by extra rows, so
+            # that the null space spans its free coordinates only.
+            have = np.arange(3)[None, :] < k[cn][:, None]
+            pins = np.eye(3)[None] * (~have)[:, :, None]
+            A = np.concatenate([A, pins], axis=1)  # (c, 6, 3)
+            U, S, Vt = np.linalg.svd(A, full_matrices=False)
+            tol = 1e-10 * np.maximum(S[:, :1], 1e-300)
+            r = (S > tol).sum(axis=1)
+            Sinv = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0), 0.0)
+            b = np.concatenate([rhs[con] * mask, np.zeros((len(cn), 3))], axis=1)
+            pl = np.einsum("kji,kj,klj,kl->ki", Vt, Sinv, U, b, optimize=True)
+            pl = np.where(have, pl, 0.0)
+            p_q[self.cols[cn][have]] = pl[have]
+            reduced[cn] = 3 - r
+            blocks = (cn, Vt, r)
+        # Reduced coordinates: nodes in the fill-reducing order, each node's consecutively.
+        order = self.node_order
+        start = np.zeros(n, np.int64)
+        start[order] = np.concatenate([[0], np.cumsum(reduced[order])[:-1]])
+        m = int(reduced.sum())
+        ri, ci, vi = [], [], []
+        free_nodes = np.ones(n, bool)
+        if len(cn):
+            free_nodes[cn] = False
+        fn_ = np.flatnonzero(free_nodes)
+        for a in range(3):
+            sel = fn_[k[fn_] > a]
+            ri.append(self.cols[sel, a])
+            ci.append(start[sel] + a)
+            vi.append(np.ones(len(sel)))
+        if len(cn):
+            cn, Vt, r = blocks
+            # null-space directions: rows r..2 of Vt (in the node's coordinates)
+            for j in range(3):
+                use = r <= j
+                for a in range(3):
+                    sel = use & (k[cn] > a)
+                    ri.append(self.cols[cn[sel], a])
+                    ci.append(start[cn[sel]] + j - r[sel])
+                    vi.append(Vt[sel, j, a])
+        Zq = sp.csr_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))),
+                           shape=(self.dofs.n_free, m))
+        E = (self.T_full @ Zq).tocsr()
+        return E, self.T_full @ p_q
+
+    # -------------------------------------------------------------------------- iterations
+    def run(self) -> TruthSolution:
+        """Load steps (the indenter lowered in equal depth increments, large deformation only),
+        each solved to the tolerances."""
+        st = self.s.settings
+        u = np.zeros((self.mesh.n_nodes, 3))
+        depth = max(float(np.max(self.field(self.mesh.vertices[self.cand_nodes, :2]), initial=0.0)),
+                    1e-3)
+        n_steps = 1
+        if self.geometric:
+            n_steps = max(1, math.ceil(depth / (st.step_strain * self.s.geometry.thickness_mm)))
+        history = []
+        state = None
+        for k in range(1, n_steps + 1):
+            self.lift = depth * (1.0 - k / n_steps)
+            u, state = self._solve_step(u, depth, history, state)
+        return self._solution(u, state, history)
+
+    def _solve_step(self, u, depth, history, state):
+        """Semismooth Newton for one indenter position: each step solves the tangent system
+        with the active contact constraints (and the stick constraints) holding exactly."""
+        st = self.s.settings
+        nc = len(self.cand_nodes)
+        c = self.constraints(u)
+        if state is None:
+            state = {"lam_n": np.zeros(nc), "lam_p": np.zeros(len(self.ind_xy)),
+                     "active_n": c.gap[:nc] < 0, "active_p": c.gap[nc:] < 0,
+                     "stick": np.zeros(nc, bool), "f_slip": np.zeros((nc, 3)),
+                     "f_node": np.zeros((nc, 3))}
+        else:
+            state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
+            state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
+        prev_step = np.inf
+        for it in range(1, st.max_iterations + 1):
+            self.newton_steps += 1
+            c = self.constraints(u)
+            normals = self.indenter_normals(u)[self.cand_nodes]
+            act_n, act_p, stick = state["active_n"], state["active_p"], state["stick"] & state["active_n"]
+            # ---- the node constraints: normal (active), tangential (active and sticking)
+            rows = np.zeros((nc, 3, 3))
+            rhs = np.zeros((nc, 3))
+            rows[:, 0] = c.weights[:nc, 0]
+            rhs[:, 0] = -c.gap[:nc]
+            tang = _tangent_basis(normals)  # (nc, 2, 3)
+            rows[:, 1:] = tang
+            uc = u[self.cand_nodes]
+            rhs[:, 1:] = -np.einsum("kij,kj->ki", tang, uc)
+            nrows = np.where(act_n, np.where(stick, 3, 1), 0)
+            E, p = self._reduction(rows, rhs, nrows)
+            # ---- residual and tangent (slip forces are loads of this step)
+            f_int, K = self.gel.forces_and_stiffness(u)
+            R = f_int.ravel().copy()
+            slip = act_n & ~stick
+            if self.friction != "frictionless" and np.any(slip):
+                nodes = self.cand_nodes[slip]
+                R[(3 * nodes[:, None] + np.arange(3)).ravel()] -= state["f_slip"][slip].ravel()
+            Kr = (E.T @ K @ E).tocsr()
+            rhs_r = -(E.T @ (R + K @ p))
+            # ---- active indenter points: Schur complement on their multipliers
+            ap = np.flatnonzero(act_p)
+            C = None
+            if len(ap):
+                dofs = (3 * c.nodes[nc + ap][:, :, None] + np.arange(3)).reshape(len(ap), 9)
+                C = sp.csr_matrix((c.weights[nc + ap].reshape(len(ap), 9).ravel(),
+                                   (np.repeat(np.arange(len(ap)), 9), dofs.ravel())),
+                                  shape=(len(ap), 3 * self.mesh.n_nodes))
+                Cr = (C @ E).toarray()
+                keep = np.linalg.norm(Cr, axis=1) > 1e-8 * np.linalg.norm(C.toarray(), axis=1)
+                # A point whose three corners are all held by active node constraints cannot
+                # move: where it penetrates, those node constraints are released next step
+                # (the point holds the triangle below the indenter's feature instead).
+                held = ap[~keep]
+                ap, C, Cr = ap[keep], C[keep], Cr[keep]
+            else:
+                held = ap
+            factor = SymmetricFactor(Kr, ordered=self.ordered)
+            self.factorizations += 1
+            y = factor.solve(rhs_r)
+            mu_p = np.zeros(len(ap))
+            if len(ap):
+                Y = factor.solve(Cr.T)
+                S = Cr @ Y
+                b = -c.gap[nc + ap] - C @ p - Cr @ y
+                mu_p = np.linalg.solve(S, b)
+                y = y + Y @ mu_p
+            du = E @ y + p
+            # ---- contact forces from the linearised residual
+            r_lin = R + K @ du
+            if len(ap):
+                r_lin -= C.T @ mu_p
+            f_node = r_lin.reshape(-1, 3)[self.cand_nodes]
+            lam_n = np.where(act_n, np.einsum("ki,ki->k", f_node, normals), 0.0)
+            f_T = f_node - lam_n[:, None] * normals
+            f_T = np.where(stick[:, None], f_T, np.where(slip[:, None], state["f_slip"], 0.0))
+            lam_p = np.zeros(len(self.ind_xy))
+            lam_p[ap] = mu_p
+            # ---- step (halved while elements invert)
+            t = 1.0
+            dU = du.reshape(-1, 3)
+            while self.geometric and not np.isfinite(self.gel.energy(u + t * dU)):
+                t *= 0.5
+                if t < 1e-4:
+                    raise TruthSolveError("every step inverts elements of the truth mesh")
+            u = u + t * dU
+            # ---- new active, stick and slip sets (complementarity functions)
+            c = self.constraints(u)
+            new_n = (lam_n - self.c_node * c.gap[:nc]) > 0
+            new_p = (lam_p - self.c_point * c.gap[nc:]) > 0
+            stuck = held[c.gap[nc + held] < -st.penetration_tol_mm] if len(held) else held
+            if len(stuck):
+                release = self._cand_index[c.nodes[nc + stuck].ravel()]
+                new_n[release[release >= 0]] = False
+                new_p[stuck] = True
+            normals = self.indenter_normals(u)[self.cand_nodes]
+            bound = self.friction_bound(np.maximum(lam_n, 0.0))
+            uT = u[self.cand_nodes] - np.einsum("ki,ki->k", u[self.cand_nodes], normals)[:, None] * normals
+            tau = f_T - self.c_node[:, None] * uT
+            tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
+            nt = np.linalg.norm(tau, axis=1)
+            new_stick = new_n & (nt <= bound) & (bound > 0)
+            f_slip = np.where((new_n & ~new_stick)[:, None],
+                              np.where(np.isfinite(bound), bound, 0.0)[:, None] * tau
+                              / np.maximum(nt, 1e-300)[:, None], 0.0)
+            scale = max(float(np.abs(lam_n).sum() + np.abs(lam_p).sum()), 1e-300)
+            slip_change = float(np.abs(f_slip - state["f_slip"]).max(initial=0.0)) / scale
+            same = (np.array_equal(new_n, act_n) and np.array_equal(new_p, state["active_p"])
+                    and np.array_equal(new_stick, stick))
+            step = float(np.abs(dU).max()) * t
+            pen = float(max(0.0, -c.gap.min())) if len(c.gap) else 0.0
+            history.append((self.newton_steps, pen, step))
+            log.debug("lift %.4f mm, step %d: |du| %.3g mm, t %.2g, active %d+%d, stick %d, "
+                      "penetration %.3g um, slip change %.2g", self.lift, it, step, t,
+                      int(new_n.sum()), int(new_p.sum()), int(new_stick.sum()), pen * 1e3,
+                      slip_change)
+            state.update(lam_n=lam_n, lam_p=lam_p, active_n=new_n, active_p=new_p,
+                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0))
+            small = step <= st.step_tol * depth or (step <= st.floor_tol * depth
+                                                     and step >= 0.5 * prev_step)
+            prev_step = step
+            if same and t == 1.0 and small and slip_change <= st.force_tol and \
+                    pen <= st.penetration_tol_mm:
+                return u, state
+        raise TruthSolveError(
+            f"contact iterations did not converge in {st.max_iterations} Newton steps (indenter "
+            f"{self.lift:.3g} mm above its final depth): last step {step:.3g} mm, penetration "
+            f"{pen * 1e3:.3g} um, active sets changing: {not same}")
+
+    def _solution(self, u, state, history) -> TruthSolution:
+        n_plane = self.n_plane
+        nc = len(self.cand_nodes)
+        c = self.constraints(u)
+        normals = self.indenter_normals(u)
+        # Active sets are final: a multiplier is > c g, with |g| at round-off (clipped at 0).
+        lam_n = np.where(state["active_n"], np.maximum(state["lam_n"], 0.0), 0.0)
+        forces = np.zeros((n_plane, 3))
+        nodes = self.cand_nodes
+        forces[nodes] = lam_n[:, None] * normals[nodes] + state["f_node"]
+        fn = np.zeros(n_plane)
+        fn[nodes] = lam_n
+        node_fn = fn.copy()
+        lam_p = np.maximum(state["lam_p"], 0.0)
+        if len(lam_p):
+            fp = lam_p[:, None, None] * c.weights[nc:]  # (q, 3 corners, 3)
+            np.add.at(forces, c.nodes[nc:].ravel(), fp.reshape(-1, 3))
+            np.add.at(fn, c.nodes[nc:].ravel(), (lam_p[:, None] * c.share[nc:]).ravel())
+        in_contact = fn > 1e-12 * max(fn.max(initial=0.0), 1e-300)
+        sticking = np.zeros(n_plane, bool)
+        if self.friction == "stick":
+            sticking = in_contact.copy()
+        elif self.friction == "coulomb":
+            sticking[nodes] = state["stick"]
+            sticking &= in_contact
+        return TruthSolution(
+            mesh=self.mesh, displacements_mm=u, contact_forces_n=forces, normal_force_n=fn,
+            in_contact=in_contact, sticking=sticking, force_n=float(-forces[:, 2].sum()),
+            tangential_force_n=forces[:, :2].sum(0),
+            max_penetration_mm=float(max(0.0, -c.gap.min())) if len(c.gap) else 0.0,
+            iterations=self.newton_steps,
+            info={"history": history, "n_nodes": self.mesh.n_nodes,
+                  "factorizations": self.factorizations,
+                  "newton_steps": self.newton_steps,
+                  "n_constraints": len(c.gap), "h_fine_mm": self.h_fine,
+                  # complementarity, per constraint: a sensing node's own normal force (N) and
+                  # the feature points' gaps (mm) and forces (N)
+                  "node_normal_force_n": node_fn, "point_gap_mm": c.gap[nc:].copy(),
+                  "point_force_n": np.asarray(lam_p, float).copy()},
+        )
+
+
+def _tangent_basis(normals: np.ndarray) -> np.ndarray:
+    """Two unit vectors (k, 2, 3) spanning the plane normal to each unit normal (k, 3)."""
+    a = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    t1 = a - np.einsum("ki,ki->k", a, normals)[:, None] * normals
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    return np.stack([t1, t2], axis=1)
+
+
+def _dof_map(mesh: PadMesh, supports: Supports):
+    """The free-coordinate map of ``mesh``; for the sensor's supports (bonded backplate, free
+    sides) a plain selection of the free nodes' x, y, z, built directly."""
+    if supports != SENSOR_SUPPORTS:
+        return build_dof_map(mesh, supports)
+    from tactile_deploy.fem.constraints import DofMap
+
+    n = mesh.n_nodes
+    free = np.setdiff1d(np.arange(n), mesh.backplate_nodes)
+    rows = (3 * free[:, None] + np.arange(3)).ravel()
+    T = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(3 * n, len(rows)))
+    return DofMap(T=T, node_of_col=np.repeat(free, 3),
+                  direction_of_col=np.tile(np.eye(3), (len(free), 1)),
+                  z_col=np.full(n, -1), xy_cols=np.full((n, 2), -1))
+
+
+def _triangle_slopes(P: np.ndarray) -> np.ndarray:
+    """Gradient (dz/dx, dz/dy) of the plane through each triangle (q, 3, 3), (q, 2)."""
+    e1 = P[:, 1] - P[:, 0]
+    e2 = P[:, 2] - P[:, 0]
+    nrm = np.cross(e1, e2)
+    nz = np.where(np.abs(nrm[:, 2]) > 1e-300, nrm[:, 2], 1e-300)
+    return np.column_stack([-nrm[:, 0] / nz, -nrm[:, 1] / nz])
+
+
+def surface_penetration(sol: TruthSolution, field_: IntrusionField, pitch_mm: float = 0.01,
+                        geometric: bool = True) -> tuple[float, np.ndarray]:
+    """Penetration of the indenter into the gel's continuous (piecewise-linear) surface, mm.
+
+    Checked at every point of a ``pitch_mm`` grid over the indenter's footprint (the gel's
+    deformed surface height under the point against the indenter's) and at every deformed
+    sensing node (against the indenter above it). Returns (largest penetration, the points'
+    penetrations (k,)). ``geometric=False`` measures in the rest positions (small strain).
+    """
+    mesh = sol.mesh
+    fp, _ = footprint(field_, mesh.geometry, pitch_mm=pitch_mm)
+    X = mesh.vertices[: mesh.n_plane]
+    P = X + sol.displacements_mm[: mesh.n_plane]
+    tri = mesh.plane_triangles
+    out = [np.zeros(1)]
+    if len(fp):
+        near = cKDTree(fp).query(X[:, :2], distance_upper_bound=1.0)[0] < np.inf
+        tris = tri[near[tri].any(axis=1)]
+        loc = P[tris][:, :, :2] if geometric else X[tris][:, :, :2]
+        which, bary = locate_in_triangles(fp, loc)
+        z_gel = np.einsum("qa,qa->q", bary, P[tris[which]][:, :, 2])
+        inside = bary.min(axis=1) > -1e-9
+        out.append(np.where(inside, z_gel + field_(fp), -np.inf))
+    xy = P[:, :2] if geometric else X[:, :2]
+    d = field_(xy)
+    out.append(np.where(np.isfinite(d), P[:, 2] + d, -np.inf))
+    pen = np.concatenate(out)
+    return float(max(pen.max(), 0.0)), pen

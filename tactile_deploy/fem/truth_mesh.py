@@ -1,0 +1,191 @@
+"""Truth meshes: a pad mesh refined around one contact and graded away from it.
+
+The frozen output mesh of a pad (~1 mm between sensing nodes) cannot resolve a contact smaller
+than ~2 mm. The truth solver meshes the pad anew for every contact with gmsh: fine
+(``h_fine_mm``, at most the depth-pixel pitch 0.27 mm and smaller for small contacts) over the
+region of the sensing surface the indenter can touch, growing linearly with the 3-D distance
+from that region (in-plane and towards the backplate) up to ``h_coarse_mm``. The number of
+nodes therefore grows with the contact region, not with the pad.
+
+Data flow of :func:`build_truth_mesh`::
+
+    PadGeometry (disc or box, flat) + refinement region (points on the sensing surface, mm)
+        --> size field s(p) = min(h_coarse, h_fine + (growth - 1) * distance(p, region))
+        --> gmsh: OpenCASCADE solid, Frontal-Delaunay surfaces, Delaunay volume, optimised
+        --> TruthMesh: sensing-surface nodes first (0 .. n_plane - 1), node sets by surface
+
+Everything is in the sensor frame, mm. The mesh is deterministic for the same inputs (one
+meshing thread).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from tactile_deploy.pad.geometry import PadGeometry
+from tactile_deploy.pad.mesh import PadMesh
+
+
+def size_field(points_xyz: np.ndarray, region_xy: np.ndarray, h_fine_mm: float,
+               h_coarse_mm: float, growth: float) -> np.ndarray:
+    """Target edge length (mm) at ``points_xyz`` (k, 3): ``h_fine_mm`` on the region (points
+    ``region_xy`` (r, 2) of the sensing surface z = 0, sampled at most ``h_fine_mm`` apart),
+    growing by ``growth - 1`` per mm of 3-D distance from it, capped at ``h_coarse_mm``."""
+    p = np.asarray(points_xyz, float).reshape(-1, 3)
+    if len(region_xy) == 0:
+        return np.full(len(p), h_coarse_mm)
+    dist, _ = cKDTree(region_xy).query(p[:, :2])
+    dist = np.hypot(np.maximum(dist - 0.5 * h_fine_mm, 0.0), p[:, 2])
+    return np.minimum(h_coarse_mm, h_fine_mm + (growth - 1.0) * dist)
+
+
+@dataclass(frozen=True, eq=False)
+class TruthMesh(PadMesh):
+    """A truth mesh: like :class:`PadMesh` (sensing nodes first, ``plane_triangles`` = the
+    sensing-surface triangles, counter-clockwise from +z) but unstructured below the surface,
+    with its own backplate and side node sets."""
+
+    n_sensing: int = 0
+    bottom_nodes: np.ndarray | None = None
+    wall_nodes: np.ndarray | None = None
+
+    @property
+    def n_plane(self) -> int:
+        return self.n_sensing
+
+    @property
+    def backplate_nodes(self) -> np.ndarray:
+        return self.bottom_nodes
+
+    @cached_property
+    def side_nodes(self) -> np.ndarray:
+        return self.wall_nodes
+
+
+def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: float,
+                     h_coarse_mm: float = 2.0, growth: float = 1.2,
+                     surface_nodes_xy: np.ndarray | None = None,
+                     point_sizes: list[tuple[float, float, float]] = ()) -> TruthMesh:
+    """A pad mesh refined over ``region_xy`` (k, 2) mm (points where contact can occur).
+
+    ``h_fine_mm``: edge length over the region; ``h_coarse_mm``: the largest edge length;
+    ``growth``: 1 + the increase of the edge length per mm of distance from the region;
+    ``surface_nodes_xy`` (k, 2): points of the sensing surface that must be nodes (an
+    indenter's tip); ``point_sizes``: (x, y, size) triples, finer spots on the sensing surface
+    (around a sharp tip) whose size grows by ``growth`` from there. The centres of the sensing surface and of the backplate are always nodes
+    (so that a uniform expansion leaves the centre in place: the pins of rolling supports).
+    """
+    import gmsh
+
+    if geometry.sector_deg != 360.0 or geometry.dome_height_mm != 0.0:
+        raise ValueError("truth meshes support full flat pads (disc or box); got "
+                         f"sector_deg={geometry.sector_deg}, dome_height_mm={geometry.dome_height_mm}")
+    region = np.asarray(region_xy, float).reshape(-1, 2)
+    tree = cKDTree(region) if len(region) else None
+    h = geometry.thickness_mm
+
+    def size(dim, tag, x, y, z, lc):
+        if tree is None:
+            return h_coarse_mm
+        d, _ = tree.query((x, y))
+        d = ((max(d - 0.5 * h_fine_mm, 0.0)) ** 2 + z * z) ** 0.5
+        out = min(h_coarse_mm, h_fine_mm + (growth - 1.0) * d)
+        for px, py, ps in point_sizes:
+            dp = ((x - px) ** 2 + (y - py) ** 2 + z * z) ** 0.5
+            out = min(out, ps + (growth - 1.0) * dp)
+        return out
+
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.model.add("truth")
+        occ = gmsh.model.occ
+        if geometry.shape == "disc":
+            occ.addCylinder(0, 0, -h, 0, 0, h, geometry.radius_mm)
+        else:
+            occ.addBox(-0.5 * geometry.width_mm, -0.5 * geometry.length_mm, -h,
+                       geometry.width_mm, geometry.length_mm, h)
+        occ.synchronize()
+        top_tag = bottom_tag = None
+        for dim, tag in gmsh.model.getEntities(2):
+            _, _, z0, _, _, z1 = gmsh.model.getBoundingBox(dim, tag)
+            if abs(z0) < 1e-4 * h and abs(z1) < 1e-4 * h:
+                top_tag = tag
+            elif abs(z0 + h) < 1e-4 * h and abs(z1 + h) < 1e-4 * h:
+                bottom_tag = tag
+        geo = gmsh.model.geo
+        extra = [] if surface_nodes_xy is None else [tuple(p) for p in np.reshape(surface_nodes_xy, (-1, 2))]
+        top_points = [occ.addPoint(x, y, 0.0) for x, y in [(0.0, 0.0)] + extra]
+        bottom_points = [occ.addPoint(0.0, 0.0, -h)]
+        occ.synchronize()
+        gmsh.model.mesh.embed(0, top_points, 2, top_tag)
+        gmsh.model.mesh.embed(0, bottom_points, 2, bottom_tag)
+        del geo
+        gmsh.model.mesh.setSizeCallback(size)
+        for name, value in (("Mesh.MeshSizeExtendFromBoundary", 0), ("Mesh.MeshSizeFromPoints", 0),
+                            ("Mesh.MeshSizeFromCurvature", 0), ("Mesh.Algorithm", 6),
+                            ("Mesh.Algorithm3D", 1), ("Mesh.Optimize", 1),
+                            ("Mesh.MaxNumThreads1D", 1), ("Mesh.MaxNumThreads2D", 1),
+                            ("Mesh.MaxNumThreads3D", 1)):
+            gmsh.option.setNumber(name, value)
+        gmsh.model.mesh.generate(3)
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        xyz = xyz.reshape(-1, 3)
+        index = np.zeros(int(tags.max()) + 1, np.int64)
+        index[tags.astype(np.int64)] = np.arange(len(tags))
+        _, conn = gmsh.model.mesh.getElementsByType(4)
+        tets = index[conn.astype(np.int64)].reshape(-1, 4)
+        top_tris, bottom, wall = [], [], []
+        for dim, tag in gmsh.model.getEntities(2):
+            x0, y0, z0, x1, y1, z1 = gmsh.model.getBoundingBox(dim, tag)
+            node_tags, _, _ = gmsh.model.mesh.getNodes(dim, tag, includeBoundary=True)
+            nodes = index[node_tags.astype(np.int64)]
+            if abs(z0) < 1e-4 * h and abs(z1) < 1e-4 * h:
+                _, tri = gmsh.model.mesh.getElementsByType(2, tag)
+                top_tris.append(index[tri.astype(np.int64)].reshape(-1, 3))
+            elif abs(z0 + h) < 1e-4 * h and abs(z1 + h) < 1e-4 * h:
+                bottom.append(nodes)
+            else:
+                wall.append(nodes)
+    finally:
+        gmsh.finalize()
+    top_tris = np.concatenate(top_tris)
+    # Snap the surfaces exactly (gmsh's coordinates carry round-off).
+    top = np.unique(top_tris)
+    xyz[top, 2] = 0.0
+    # Every node on the backplate plane (embedded points are not listed with the surface).
+    bottom = np.unique(np.concatenate(bottom + [np.flatnonzero(np.abs(xyz[:, 2] + h) < 1e-6 * h)]))
+    xyz[bottom, 2] = -h
+    wall = np.unique(np.concatenate(wall))
+    # Renumber: sensing nodes first, the others in gmsh's order.
+    order = np.concatenate([top, np.setdiff1d(np.arange(len(xyz)), top)])
+    new = np.empty(len(order), np.int64)
+    new[order] = np.arange(len(order))
+    vertices = xyz[order]
+    tets = new[tets]
+    tris = new[top_tris]
+    p = vertices[tris]
+    cross = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (
+        p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0])
+    tris[cross < 0] = tris[cross < 0][:, [0, 2, 1]]
+    from tactile_deploy.pad.meshing import signed_volumes
+
+    vol = signed_volumes(vertices, tets)
+    tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]
+    w = new[wall]
+    if geometry.shape == "disc":  # wall nodes exactly on the cylinder
+        r = np.hypot(vertices[w, 0], vertices[w, 1])
+        vertices[w, :2] *= (geometry.radius_mm / r)[:, None]
+    else:  # and on the box's planes
+        for axis, half in ((0, 0.5 * geometry.width_mm), (1, 0.5 * geometry.length_mm)):
+            on = np.abs(np.abs(vertices[w, axis]) - half) < 1e-6 * half
+            vertices[w[on], axis] = np.sign(vertices[w[on], axis]) * half
+    g = geometry.model_copy(update={"name": f"{geometry.name}_truth"})
+    return TruthMesh(geometry=g, vertices=vertices, tets=tets.astype(np.int32),
+                     plane_triangles=tris.astype(np.int32), n_sensing=len(top),
+                     bottom_nodes=np.sort(new[bottom]), wall_nodes=np.sort(new[wall]))
