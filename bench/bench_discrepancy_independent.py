@@ -181,7 +181,10 @@ def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, s
 
 
 def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log=print,
-        workers: int = 2) -> dict:
+        workers: int = 2, checkpoint=None) -> dict:
+    """Every effect (and ``n_null`` effect-free datasets) on ``seeds`` contact sets of
+    ``n_contacts``; ``checkpoint(results)`` is called after each dataset with the results so
+    far (a run stopped early can still be summarised)."""
     from calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
     from tactile_deploy.sensors import load_sensor
 
@@ -212,11 +215,32 @@ def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log
                 f"{json.dumps(entry['parameters'], default=float)} explained "
                 f"{entry['explained']} params ok {entry.get('parameters_ok')} "
                 f"({entry['time_s']:.0f} s)")
+            if checkpoint is not None:
+                checkpoint(_results(runs, sensor_name, seed + 1, n_contacts, effects,
+                                    t_start, complete=False))
+    return _results(runs, sensor_name, seeds, n_contacts, effects, t_start, complete=True)
+
+
+def _results(runs, sensor_name, seeds, n_contacts, effects, t_start, complete) -> dict:
     import os
 
     return {"runs": runs, "sensor": sensor_name, "seeds": seeds, "contacts": n_contacts,
             "effects": list(effects), "wall_s": time.perf_counter() - t_start,
-            "load_average": os.getloadavg()}
+            "load_average": os.getloadavg(), "complete": complete}
+
+
+def _coverage(res: dict) -> str:
+    """Which effects ran, and whether the run finished (a stopped run is summarised as far as it
+    went)."""
+    runs = res["runs"]
+    n_null = sum(r["effect"] == "none" for r in runs)
+    full = set(res["effects"]) == set(EFFECTS)
+    text = (f"Effects: {'all ' + str(len(EFFECTS)) if full else ', '.join(res['effects'])}"
+            f" ({len(runs)} datasets, {n_null} effect-free)")
+    if res.get("complete", True):
+        return text + "."
+    return text + (f"; the run was stopped after {len(runs)} datasets, during seed "
+                   f"{res['seeds'] - 1}.")
 
 
 def summarise(res: dict) -> tuple[str, dict]:
@@ -272,7 +296,7 @@ indenter meshes (sphere, sphere2, cylinder_side, prism, hexagon; within 8 mm of 
 0.3-0.9 mm deep), their clean `simulate` output with one effect applied by
 `tests/independent_effects.py` (numpy, scipy, OpenCV; none of the product's effect code), 4 um
 pixel noise, 1 % force noise; {res['seeds']} seeds, parameters drawn at random per seed from
-what real sensors show (either sign where both occur).
+what real sensors show (either sign where both occur). {_coverage(res)}
 
 | measure | result | target |
 |---|---|---|
@@ -317,22 +341,28 @@ def main(argv=None) -> dict:
                         help="summarise the results JSON of an earlier run (no new runs)")
     args = parser.parse_args(argv)
     effects = tuple(args.effects.split(",")) if args.effects else EFFECTS
+    from tactile_deploy.atomic import write_text
+
+    results_path = ROOT / "bench" / "results" / "discrepancy-independent.json"
+
+    def save(res):
+        results_path.parent.mkdir(parents=True, exist_ok=True)
+        write_text(results_path, json.dumps(res, indent=1, default=float) + "\n")
+
     if args.summarise is not None:
         res = json.loads(args.summarise.read_text())
     else:
         res = run(args.sensor, args.seeds, args.contacts, args.null, effects,
-                  log=lambda m: print(m, flush=True), workers=args.workers)
+                  log=lambda m: print(m, flush=True), workers=args.workers,
+                  checkpoint=None if args.no_write else save)
     text, summary = summarise(res)
     print(text)
     if not args.no_write:
         from bench.report import write_section
-        from tactile_deploy.atomic import write_text
 
         write_section("discrepancy-independent", text)
-        out = ROOT / "bench" / "results"
-        out.mkdir(parents=True, exist_ok=True)
-        write_text(out / "discrepancy-independent.json",
-                   json.dumps(res, indent=1, default=float) + "\n")
+        if args.summarise is None:
+            save(res)
     return summary
 
 
