@@ -98,7 +98,7 @@ def clean_simulator(sensor):
 
 
 def measured_data(contacts, maps, forces, rng, source: str):
-    from calibration.discrepancy.measured import MeasuredData
+    from tactile_deploy.calibration.discrepancy.measured import MeasuredData
 
     n = len(contacts)
     return MeasuredData(
@@ -153,7 +153,7 @@ def parameter_check(effect: str, truth: dict, named: str, p: dict,
 def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, simulate, camera,
                 rng, opts) -> dict:
     """One dataset through the workflow: the record of its verdict."""
-    from calibration.discrepancy.workflow import find_discrepancy
+    from tactile_deploy.calibration.discrepancy.workflow import find_discrepancy
 
     import tempfile
 
@@ -185,7 +185,7 @@ def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log
     """Every effect (and ``n_null`` effect-free datasets) on ``seeds`` contact sets of
     ``n_contacts``; ``checkpoint(results)`` is called after each dataset with the results so
     far (a run stopped early can still be summarised)."""
-    from calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
+    from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
     from tactile_deploy.sensors import load_sensor
 
     sensor = load_sensor(sensor_name)

@@ -5,7 +5,7 @@ For each family's virtual sensor (``tactile_deploy/assets/sensors/<family>.json`
 
 1. 24 ball presses (1.5 mm ball radius, 0.4-1.1 mm deep, anywhere in the view) are recorded in the
    real recordings' layout (frames, ``background.png``, ``annotate.csv``) and calibrated with
-   :func:`calibration.recording.build.calibrate_recording` at the virtual camera's scale;
+   :func:`tactile_deploy.calibration.recording.build.calibrate_recording` at the virtual camera's scale;
 2. new ball presses (8 at least two contact radii inside the view, 8 within 1.2-1.7 of its
    edges) go through the plugin's imaging pipeline: RMSE within 1.5 contact radii against the
    surface the frames were shaded from, on the family's depth grid (the GelSlim check of
@@ -38,8 +38,8 @@ BALL_MM = 1.5
 
 
 def family_bench(name: str, tmp: Path) -> dict:
-    from calibration.recording.build import calibrate_recording
-    from calibration.shading.virtual_check import (
+    from tactile_deploy.calibration.recording.build import calibrate_recording
+    from tactile_deploy.calibration.shading.virtual_check import (
         contact_region_errors,
         near_contact_errors,
         virtual_ball_presses,

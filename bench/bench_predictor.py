@@ -14,7 +14,7 @@ displacement [N, 5380, 3] mm, ood_score [N]):
   grid decoder, int8; rebuilds the whole pad from 128 numbers;
 * **physics lift**: no learning: the depth map read at every sensing node's rest position, the
   pad's linear FEM for the rest (one dense 16,140 x 1,076 product, fp32; built here from the pad's
-  operators, :class:`training.networks.lift.LiftGraph`); and, for accuracy only, the reference lift
+  operators, :class:`tactile_deploy.training.networks.lift.LiftGraph`); and, for accuracy only, the reference lift
   that reads the map where the nodes have moved (3 passes, numpy; the "physics lift" of every
   evaluation);
 * **surface**: sensing nodes anchored on the measured surface + the convolutional residual of the
@@ -25,7 +25,7 @@ displacement [N, 5380, 3] mm, ood_score [N]):
 
 ``--variants`` exports further variants of the committed bundle here (default: the surface design).
 
-Accuracy (:func:`training.metrics.mesh_metrics`, per-node Euclidean errors): contact patch RMSE,
+Accuracy (:func:`tactile_deploy.training.metrics.mesh_metrics`, per-node Euclidean errors): contact patch RMSE,
 deepest-node error (mean of |.| in % and signed mean), all-node RMSE, on fresh frictionless contacts
 of the training indenters (``--n``, seed 3003) and of the shared STL indenters never trained on
 (``--n`` / 2); the OOD AUROC of ``ood_score`` separating those primitives from 256 contacts of the
@@ -64,8 +64,8 @@ def _small_model():
     import numpy as np
     import torch
 
-    from training.config import DataConfig, ModelConfig, SurfaceStageConfig, SyntheticData, TrainConfig
-    from training.train import build_model
+    from tactile_deploy.training.config import DataConfig, ModelConfig, SurfaceStageConfig, SyntheticData, TrainConfig
+    from tactile_deploy.training.train import build_model
 
     cfg = TrainConfig(run_dir="unused", data=DataConfig(synthetic=SyntheticData(n_samples=1)),
                       model=ModelConfig(image={"widths": (16, 32, 64, 128, 128)}, surface={"anchor": "moved"}),
@@ -102,9 +102,9 @@ def _domains(n: int, shared: Path):
     import numpy as np
 
     from tactile_deploy.indenters import list_indenters
-    from training.config import SyntheticData
-    from training.data import fresh_contacts
-    from training.evaluation import simulate_domain
+    from tactile_deploy.training.config import SyntheticData
+    from tactile_deploy.training.data import fresh_contacts
+    from tactile_deploy.training.evaluation import simulate_domain
 
     out = {}
     for name, count in (("primitives", n), ("unseen_shapes", max(1, n // 2))):
@@ -120,8 +120,8 @@ def main(argv=None) -> int:
     import torch
 
     from tactile_deploy.onnx_runtime.session import make_session
-    from training.export import VARIANTS, export_variant, run_session, torch_reference
-    from training.metrics import mesh_metrics
+    from tactile_deploy.training.export import VARIANTS, export_variant, run_session, torch_reference
+    from tactile_deploy.training.metrics import mesh_metrics
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", default=str(ROOT / "exported" / "gelslim_mesh.pt"), help="training bundle (model.pt)")
@@ -150,7 +150,7 @@ def main(argv=None) -> int:
         model, bundle, data, calib = _small_model()
         variants, rounds, ood_maps = ["surface-fastood", "surface-int8-fastood"], min(rounds, 20), None
     else:
-        from training.train import load_bundle
+        from tactile_deploy.training.train import load_bundle
 
         model, bundle = load_bundle(args.bundle)
         if not Path(args.shared).is_dir():
@@ -158,8 +158,8 @@ def main(argv=None) -> int:
         data, ood_maps = _domains(args.n, Path(args.shared))
         calib = None
         if any("-int8" in v for v in variants):  # maps of the training distribution, never the ones measured here
-            from training.config import TrainConfig
-            from training.export import calibration_maps
+            from tactile_deploy.training.config import TrainConfig
+            from tactile_deploy.training.export import calibration_maps
 
             calib, _ = calibration_maps(TrainConfig.model_validate(bundle["config"]), heldout_seed=BENCH_SEED)
 
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     shipped_variant = variants[0] if args.small else None
     if not args.small:
         from tactile_deploy.onnx_runtime.metadata import read_metadata
-        from training.export import fp32_twin
+        from tactile_deploy.training.export import fp32_twin
 
         shipped = Path(args.shipped)
         if not shipped.is_file():
@@ -191,8 +191,8 @@ def main(argv=None) -> int:
                 "precision": "fp32"}
         import torch.onnx
 
-        from training.export import OUTPUTS, _onnx_export
-        from training.networks.lift import LiftGraph
+        from tactile_deploy.training.export import OUTPUTS, _onnx_export
+        from tactile_deploy.training.networks.lift import LiftGraph
 
         path = tmp / "lift.onnx"
         _onnx_export(LiftGraph.for_pad(getattr(model, "nu", 0.48)).eval(), torch.zeros(2, 1, 128, 128), path,
@@ -221,7 +221,7 @@ def main(argv=None) -> int:
             if dom == "primitives" and ood_maps is not None and d["kind"] != "lift":
                 rows[name]["ood_auroc"] = auroc(ood, run_session(d["session"], ood_maps[:, None])[2])
     if not args.small:
-        from training.evaluation import physics_lift
+        from tactile_deploy.training.evaluation import physics_lift
 
         rows["physics lift (reference: 3 passes, numpy)"] = {"kind": "lift", "precision": "fp64", "file_mb": None,
             "domains": {dom: mesh_metrics(physics_lift(depth), true, mask, n_plane)
@@ -234,7 +234,7 @@ def main(argv=None) -> int:
                 if d["variant"].split("-")[0] == shipped_variant.split("-")[0] else None
 
     # -- speed: interleaved rounds ----------------------------------------------------------------
-    from training.export import deploy_module
+    from tactile_deploy.training.export import deploy_module
 
     eager = deploy_module(model, shipped_variant.replace("-int8", "")).eval()
     k = len(depth0)

@@ -5,7 +5,7 @@
 
 The 42 real GelSight ball presses of ``../shared/data/real/fots_gelsight_ballpress`` (a steel ball
 of radius 2.35 mm; each frame's contact circle labelled by hand) through a plugin calibrated on
-them (:func:`calibration.shading.real_gelsight.real_gelsight_plugin`: shading model, Poisson
+them (:func:`tactile_deploy.calibration.shading.real_gelsight.real_gelsight_plugin`: shading model, Poisson
 integration, the image centred on the sensor origin at 0.05107 mm per pixel). The reference is
 independent of any model: inside the labelled contact circle (radius a) the gel surface lies on
 the ball, ``z(r) = z0 - (sqrt(R^2 - r^2) - sqrt(R^2 - a^2))`` with r the distance from the circle's
@@ -21,7 +21,7 @@ per press (least squares) and the figures are of the shape:
 Adaptation as ``tactile-deploy adapt`` does it (the committed step, Adam on the label-free loss
 towards the image VAE's reconstruction, over the camera's view) on the first 30 presses; the
 figures are of the other 12, for the shipped model before and after, and for the physics lift of
-the same depth maps (:mod:`training.evaluation`) beside them. Writes the ``predictor-real``
+the same depth maps (:mod:`tactile_deploy.training.evaluation`) beside them. Writes the ``predictor-real``
 section of BENCHMARKS.md unless ``--no-write``.
 """
 
@@ -72,14 +72,14 @@ def ball_errors(vertices_mm, rest_mm, n_plane: int, centres_mm, a_mm, radius_mm:
 def main(argv=None) -> int:
     import numpy as np
 
-    from calibration.shading.real_gelsight import REAL_BALL_RADIUS_MM, REAL_MM_PER_PX, real_gelsight_plugin
+    from tactile_deploy.calibration.shading.real_gelsight import REAL_BALL_RADIUS_MM, REAL_MM_PER_PX, real_gelsight_plugin
     from tactile_deploy.adapt.step import AdaptSettings, StepProgram, adapt, evaluate, vae_filter
     from tactile_deploy.adapt.weights import write_adapted_onnx
     from tactile_deploy.adapt.workflow import view_weight
     from tactile_deploy.onnx_runtime.session import make_session
     from tactile_deploy.pad.asset import load_pad
     from tactile_deploy.runtime.pipeline import ImagingPipeline
-    from training.evaluation import physics_lift
+    from tactile_deploy.training.evaluation import physics_lift
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--onnx", default=str(ROOT / "exported" / "gelslim_mesh.onnx"), help="the family model")

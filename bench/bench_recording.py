@@ -3,10 +3,10 @@
 The shared real recording (``../shared/data/real/fots_gelsight_ballpress``: 42 presses of a
 2.35 mm ball, 240 x 320 px at 19.58 px/mm) is split into the odd- and the even-numbered presses;
 each half calibrates a ``gelsight_mini`` plugin with the one-command calibration
-(:func:`calibration.recording.build.calibrate_recording`, 5-fold held-out check of its own), and
+(:func:`tactile_deploy.calibration.recording.build.calibrate_recording`, 5-fold held-out check of its own), and
 the other half goes through the runtime (imaging pipeline + the pad's physics lift), so that
 every press is a held-out press once. Inside each contact, spheres are fitted to the displaced
-sensing nodes within 0.8 contact radii (:mod:`calibration.recording.mesh_check`): the ball's
+sensing nodes within 0.8 contact radii (:mod:`tactile_deploy.calibration.recording.mesh_check`): the ball's
 radius with the centre free (shape error), and the radius free (radius error). The presses
 nearest the image border (in contact radii) are listed on their own. Speed: the physics lift
 per frame against the frame -> depth it follows, same frames, same run.
@@ -45,9 +45,9 @@ def _labels() -> dict[str, list[float]]:
 def run_half(parity: int, labels: dict, tmp: Path):
     """Calibrate on presses of ``parity`` (1: odd), mesh the others: per-press fits, the
     calibration's figures, and per-frame times (s) of depth and lift."""
-    from calibration.recording.build import calibrate_recording
-    from calibration.recording.mesh_check import circles_to_sensor_mm, press_mesh_fit
-    from calibration.shading.presses import read_rgb
+    from tactile_deploy.calibration.recording.build import calibrate_recording
+    from tactile_deploy.calibration.recording.mesh_check import circles_to_sensor_mm, press_mesh_fit
+    from tactile_deploy.calibration.shading.presses import read_rgb
     from tactile_deploy.runtime.physics import PhysicsPredictor
     from tactile_deploy.runtime.plugins import SensorPlugin
 

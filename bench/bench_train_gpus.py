@@ -81,7 +81,7 @@ def run(args) -> int:
     env = dict(os.environ) | NO_MULTICAST
     for g in gpus:
         run_dir = out / f"x{g}"
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={g}", "-m", "training",
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={g}", "-m", "tactile_deploy.training",
                "train", "--config", args.config, "--run-dir", str(run_dir), "--device", args.device]
         if str(g) in budgets:
             cmd += ["--time-budget", f"{STAGE}={budgets[str(g)]}"]

@@ -1,7 +1,7 @@
-"""``tactile-deploy rig ...``: the rig's commands (:mod:`calibration.rig.cli`: ``simulate``,
+"""``tactile-deploy rig ...``: the rig's commands (:mod:`tactile_deploy.calibration.rig.cli`: ``simulate``,
 ``press``) and ``collect``, which presses a plan of contacts and records them as measured data
-for the discrepancy workflow (:mod:`calibration.discrepancy.collect`), with a camera station of
-the wizard (:mod:`calibration.wizard.station`) or a virtual sensor on a simulated rig.
+for the discrepancy workflow (:mod:`tactile_deploy.calibration.discrepancy.collect`), with a camera station of
+the wizard (:mod:`tactile_deploy.calibration.wizard.station`) or a virtual sensor on a simulated rig.
 
 Registered with the ``tactile-deploy`` command through the ``tactile_deploy.cli`` entry-point
 group (see pyproject.toml).
@@ -15,14 +15,14 @@ from typing import Optional
 
 import typer
 
-from calibration.discrepancy.collect import (
+from tactile_deploy.calibration.discrepancy.collect import (
     collect_presses,
     load_plan,
     plan_contacts,
     save_collection,
 )
-from calibration.rig.cli import _fail, _press_config, rig_app
-from calibration.rig.errors import RigConfigError, RigError
+from tactile_deploy.calibration.rig.cli import _fail, _press_config, rig_app
+from tactile_deploy.calibration.rig.errors import RigConfigError, RigError
 
 __all__ = ["rig_app"]
 
@@ -106,7 +106,7 @@ def collect(
 
     try:
         if simulated:
-            from calibration.rig.virtual_bench import VirtualPressBench
+            from tactile_deploy.calibration.rig.virtual_bench import VirtualPressBench
             from tactile_deploy.sensors.catalog import UnknownSensorError, load_sensor
 
             if not source.startswith("virtual:"):
@@ -123,7 +123,7 @@ def collect(
         else:
             if source.startswith("virtual"):
                 _fail("a virtual sensor is pressed by a simulated rig: add --simulated")
-            from calibration.wizard.station import CameraStation
+            from tactile_deploy.calibration.wizard.station import CameraStation
             from tactile_deploy.runtime.sources.base import SourceError
             from tactile_deploy.runtime.sources.config import SourceSpecError, parse_source
 

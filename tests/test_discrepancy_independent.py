@@ -19,7 +19,7 @@ import pytest
 
 import independent_effects as ind
 from bench.bench_discrepancy_independent import measured_data, run_dataset
-from calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
+from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
 from tactile_deploy.optics import Light, OpticsModel, simple_camera
 from tactile_deploy.sensors.config import VirtualSensorConfig
 from tactile_deploy.sensors.virtual import VirtualSensor

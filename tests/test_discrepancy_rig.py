@@ -33,8 +33,8 @@ def domed_unit(tmp_path_factory):
 
 
 def test_rig_collect_records_frames_commanded_contacts_and_forces(domed_unit):
-    from calibration.discrepancy.collect import load_collection_log, plan_contacts
-    from calibration.discrepancy.measured import load_measured
+    from tactile_deploy.calibration.discrepancy.collect import load_collection_log, plan_contacts
+    from tactile_deploy.calibration.discrepancy.measured import load_measured
     from tactile_deploy.indenters import ContactPose
     from tactile_deploy.sensors import load_sensor
 

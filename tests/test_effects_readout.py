@@ -88,7 +88,7 @@ def test_pixel_scale_view_equals_the_frames_camera_and_scales_mm_per_px(params):
 
 
 def test_pixel_scale_chart_covers_either_sign_along_any_axis():
-    from calibration.discrepancy.candidates import candidate_library
+    from tactile_deploy.calibration.discrepancy.candidates import candidate_library
 
     cand = candidate_library(["pixel_scale"])[0]
     cur = get_effect("pixel_scale").params.model_dump()

@@ -114,7 +114,7 @@ def test_readout_files_that_break_the_contract_are_named(tmp_path):
 
 
 def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
-    from training.shading_net.train import main
+    from tactile_deploy.training.shading_net.train import main
 
     out = tmp_path / "r.onnx"
     assert main(["--units", "1", "--presses", "6", "--epochs", "1", "--width", "4",
@@ -131,7 +131,7 @@ def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
 def test_depth_gain_recovers_a_planted_scale():
     """The unit's gain is the median of intrusion / deepest cell: a read-out that makes every
     press 7 % too shallow (and one outlier) gets 1 / 0.93 back; the rig's offset is added."""
-    from calibration.shading.readout_gain import readout_depth_gain
+    from tactile_deploy.calibration.shading.readout_gain import readout_depth_gain
 
     intrusion = np.array([0.3, 0.45, 0.6, 0.75, 0.9])
     offset = 0.03
@@ -192,7 +192,7 @@ def test_readout_reads_unseen_shapes_closer_than_the_shading_model(gelslim2_with
     read-out's training saw) of the virtual GelSlim 2, against the surface their frames were
     shaded from: the read-out's error over the contact and its rim is smaller than the shading
     model's of the same plugin."""
-    from calibration.shading.virtual_check import contact_region_errors, virtual_shape_presses
+    from tactile_deploy.calibration.shading.virtual_check import contact_region_errors, virtual_shape_presses
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.sensors import load_sensor
 
@@ -282,7 +282,7 @@ def test_finetuning_moves_a_network_to_a_planted_one(tmp_path):
 def test_finetuning_without_torch_says_what_to_install(monkeypatch):
     import sys
 
-    from calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
+    from tactile_deploy.calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
 
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(FinetuneUnavailable, match=r"tactile-deploy\[train\].*readout_steps to 0"):
@@ -296,7 +296,7 @@ def test_training_features_are_the_runtime_features():
     from tactile_deploy.imaging.camera_mapping import grid_centres_mm
     from tactile_deploy.imaging.shading import frame_offset
     from tactile_deploy.learning.readout_network import N_FEATURES
-    from training.shading_net import data
+    from tactile_deploy.training.shading_net import data
 
     assert N_FEATURES == lr.N_FEATURES
     assert (data.COLOUR_SCALE_GREY, data.POSITION_SCALE_MM) == (lr.COLOUR_SCALE_GREY,
@@ -316,8 +316,8 @@ def test_training_features_are_the_runtime_features():
 def test_crop_file_round_trip(tmp_path):
     """Crops written and read back: frames exact, depth to 1 um, features as before; a crop
     file of other settings is refused by the training command."""
-    from training.shading_net.crops import Crops, contact_crops, load_crops, read_spec, save_crops
-    from training.shading_net.data import UnitPresses
+    from tactile_deploy.training.shading_net.crops import Crops, contact_crops, load_crops, read_spec, save_crops
+    from tactile_deploy.training.shading_net.data import UnitPresses
 
     rng = np.random.default_rng(8)
     h, w, n = 20, 30, 5
@@ -346,7 +346,7 @@ def test_procedural_indenters_are_what_they_draw():
     """Every family gives an indenter whose envelope, sampled at its grid's pixel centres, is the
     drawn height map (lowest point 0, finite only on the footprint); a flat punch presses flat."""
     from tactile_deploy.indenters import ContactPose
-    from training.shading_net.shapes import FAMILIES, GridIndenter, random_indenter
+    from tactile_deploy.training.shading_net.shapes import FAMILIES, GridIndenter, random_indenter
 
     rng = np.random.default_rng(11)
     for family in FAMILIES:
@@ -370,7 +370,7 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
     import subprocess
     import sys
 
-    from training.shading_net.crops import Crops, save_crops
+    from tactile_deploy.training.shading_net.crops import Crops, save_crops
 
     rng = np.random.default_rng(2)
     n, h, w = 6, 16, 16
@@ -381,7 +381,7 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
                   rng.normal(size=(1, 2, 24, 24)).astype(np.float32), np.array(["ball"] * n), 0.27)
     save_crops(tmp_path / "c.npz", crops, {})
     code = ("import sys; sys.modules['cv2'] = None; sys.modules['pydantic'] = None; "
-            "from training.shading_net.fitting import main; "
+            "from tactile_deploy.training.shading_net.fitting import main; "
             f"main(['--crops', r'{tmp_path / 'c.npz'}', '--weights-out', r'{tmp_path / 'w.pt'}', "
             "'--epochs', '2', '--width', '4', '--device', 'cpu'])")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
@@ -392,7 +392,7 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
     assert saved["settings"]["width"] == 4 and len(saved["losses"]) == 2
     # continued from those weights (a step too small to move them): it starts where they ended,
     # and says so
-    from training.shading_net.fitting import main as fit_main
+    from tactile_deploy.training.shading_net.fitting import main as fit_main
 
     assert fit_main(["--crops", str(tmp_path / "c.npz"), "--weights-out", str(tmp_path / "w2.pt"),
                      "--epochs", "1", "--width", "4", "--device", "cpu", "--lr", "1e-12",
@@ -411,10 +411,10 @@ def test_crops_train_where_only_torch_is_installed(tmp_path):
 
 
 def test_validation_command_compares_networks_on_an_unseen_unit(tmp_path, capsys):
-    """``python -m training.shading_net.validate``: presses of another unit, each network's
+    """``python -m tactile_deploy.training.shading_net.validate``: presses of another unit, each network's
     contact-region error per kind; the same network twice gives the same figures, and the
     presses kept in --cache give them again. The error is an RMSE over the contact and its rim."""
-    from training.shading_net.validate import main, region_rmse_um
+    from tactile_deploy.training.shading_net.validate import main, region_rmse_um
 
     truth = np.zeros((20, 20), np.float32)
     truth[8:12, 8:12] = 0.2
@@ -435,7 +435,7 @@ def test_contact_region_errors_in_the_view_count_only_the_cells_the_camera_sees(
     """A grid covering x in [-5.6, 5.6] mm, y in [-2.8, 2.8] mm: the view mask holds the model
     cells (pitch 35/128 mm) whose centres lie inside it; an error planted only outside the view
     counts in the region's RMSE and not in the in-view RMSE."""
-    from calibration.shading.virtual_check import contact_region_errors, view_mask
+    from tactile_deploy.calibration.shading.virtual_check import contact_region_errors, view_mask
 
     view = view_mask(OutputGrid(x_min_mm=-5.6, x_max_mm=5.6, y_min_mm=-2.8, y_max_mm=2.8,
                                 nx=41, ny=21))

@@ -118,7 +118,7 @@ def test_one_command_makes_a_plugin_without_a_learned_model(real_run):
 
 
 def test_held_out_meshes_are_the_ball_inside_each_contact(real_run):
-    from calibration.recording.mesh_check import circles_to_sensor_mm, press_mesh_fit
+    from tactile_deploy.calibration.recording.mesh_check import circles_to_sensor_mm, press_mesh_fit
     from tactile_deploy.runtime.plugins import SensorPlugin
 
     import json

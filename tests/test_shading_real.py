@@ -13,22 +13,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.shading.baselines import fit_rgb_table
-from calibration.shading.circles import (
+from tactile_deploy.calibration.shading.baselines import fit_rgb_table
+from tactile_deploy.calibration.shading.circles import (
     ContactNotFoundError,
     contact_radius_from_gradients,
     detect_contact_circle,
 )
-from calibration.shading.compare import METHOD_NAMES, compare_methods
-from calibration.shading.evaluate import depth_errors, fit_sphere, markdown_table
-from calibration.shading.fit import fit_shading
-from calibration.shading.presses import (
+from tactile_deploy.calibration.shading.compare import METHOD_NAMES, compare_methods
+from tactile_deploy.calibration.shading.evaluate import depth_errors, fit_sphere, markdown_table
+from tactile_deploy.calibration.shading.fit import fit_shading
+from tactile_deploy.calibration.shading.presses import (
     PressDataError,
     PressSet,
     load_presses,
     read_annotations,
 )
-from calibration.shading.targets import sphere_cap_depth_mm, sphere_gradients
+from tactile_deploy.calibration.shading.targets import sphere_cap_depth_mm, sphere_gradients
 from tactile_deploy.imaging.shading import (
     DepthFromShading,
     ShadingModelError,
@@ -80,7 +80,7 @@ def test_real_presses_cross_validated_against_the_ball(real_presses):
 def test_places_in_the_field():
     """Corner, edge and inside presses by their distance to the image borders in contact radii
     (the real presses' corner press 0004 and the press nearest a side, 0005)."""
-    from calibration.shading.field import press_numbers, press_places
+    from tactile_deploy.calibration.shading.field import press_numbers, press_places
 
     circles = [(85, 235, 42), (170, 211, 41), (120, 160, 40), (20, 300, 10), (60, 160, 30)]
     assert list(press_places(circles, (320, 240))) == ["corner", "edge", "inside", "corner",
@@ -344,7 +344,7 @@ def test_annotation_errors(tmp_path):
 def test_runtime_imports_without_torch_or_warp():
     code = ("import sys; sys.modules['torch'] = None; sys.modules['warp'] = None; "
             "import tactile_deploy.imaging.shading, tactile_deploy.imaging.poisson; "
-            "import calibration.shading.fit, calibration.shading.cli; print('ok')")
+            "import tactile_deploy.calibration.shading.fit, tactile_deploy.calibration.shading.cli; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=False)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
@@ -356,7 +356,7 @@ def test_command_line(tmp_path, synthetic):
     import typer
     from typer.testing import CliRunner
 
-    from calibration.shading.cli import depth_command, shading_app
+    from tactile_deploy.calibration.shading.cli import depth_command, shading_app
 
     train, frames, depths, _ = synthetic
     presses = tmp_path / "presses"

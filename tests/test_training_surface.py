@@ -16,7 +16,7 @@ def test_anchor_is_the_bilinear_read_of_the_depth_map(pad):
     """Against scipy's map_coordinates (tactile_deploy.fem.surface_to_volume.sample_depth_at) on
     random maps, rim nodes included (their taps clamp at the image edge)."""
     from tactile_deploy.fem.surface_to_volume import sample_depth_at
-    from training.networks.surface_decoder import SurfaceAnchor
+    from tactile_deploy.training.networks.surface_decoder import SurfaceAnchor
 
     xy = pad.vertices[pad.sensing_nodes, :2]
     anchor = SurfaceAnchor(xy, 128, 17.5)
@@ -36,7 +36,7 @@ def test_moved_anchor_reads_where_the_nodes_moved_and_is_differentiable(pad):
     """The read at rest + a lateral displacement against scipy at the displaced points; its
     gradient in the displacement against finite differences (float64)."""
     from tactile_deploy.fem.surface_to_volume import sample_depth_at
-    from training.networks.surface_decoder import SurfaceAnchor
+    from tactile_deploy.training.networks.surface_decoder import SurfaceAnchor
 
     xy = pad.vertices[pad.sensing_nodes, :2]
     anchor = SurfaceAnchor(xy, 128, 17.5)
@@ -57,8 +57,8 @@ def test_surface_decoder_reads_the_pixel_under_each_node(pad):
     """A head that writes each output pixel's own (row, column) into the first two values: every
     node of every free layer reads the 64 x 64 pixel that holds its in-plane point (computed here
     from the node's x, y), and the backplate reads 0."""
-    from training.config import SurfaceDecoderConfig
-    from training.networks.surface_decoder import SurfaceDecoder
+    from tactile_deploy.training.config import SurfaceDecoderConfig
+    from tactile_deploy.training.networks.surface_decoder import SurfaceDecoder
 
     m = pad.n_plane
     xy = pad.vertices[:m, :2]
@@ -90,7 +90,7 @@ def test_surface_decoder_reads_the_pixel_under_each_node(pad):
 
 
 def test_mesh_metrics_of_a_hand_made_error():
-    from training.metrics import mesh_metrics
+    from tactile_deploy.training.metrics import mesh_metrics
 
     n_plane, n = 3, 12  # 4 layers of 3 nodes, the last the backplate
     true = np.zeros((2, n, 3))
@@ -111,7 +111,7 @@ def test_mesh_metrics_of_a_hand_made_error():
 
 
 def test_targets_and_table_of_an_evaluation_report():
-    from training.evaluation import PHYSICS_LIFT, markdown_table, target_text
+    from tactile_deploy.training.evaluation import PHYSICS_LIFT, markdown_table, target_text
 
     def metrics(patch, deepest):
         return {"contact_patch_rmse_um": patch, "all_node_rmse_um": 5.0,
@@ -135,8 +135,8 @@ def test_targets_and_table_of_an_evaluation_report():
 @pytest.fixture(scope="module")
 def surface_run(tmp_path_factory, pad):
     """A tiny surface-anchored run on the CPU: 32 contacts of a frictionless + stick mixture."""
-    from training.config import TrainConfig
-    from training.train import train
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.train import train
 
     tmp = tmp_path_factory.mktemp("surface")
     stage = {"epochs": 3, "batch_size": 8, "lr": 2e-3, "kl_weight": 1e-5}
@@ -160,8 +160,8 @@ def surface_run(tmp_path_factory, pad):
 def test_surface_train_export_parity(surface_run, pad, tmp_path):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
     from tactile_deploy.onnx_runtime.session import make_session
-    from training.export import export_run, run_session
-    from training.train import load_bundle, slim_bundle
+    from tactile_deploy.training.export import export_run, run_session
+    from tactile_deploy.training.train import load_bundle, slim_bundle
 
     run, metrics = surface_run
     history = json.loads((run / "history.json").read_text())

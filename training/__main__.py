@@ -1,17 +1,17 @@
-"""Command line: ``python -m training {train,export} ...``.
+"""Command line: ``python -m tactile_deploy.training {train,export} ...``.
 
-    python -m training train --config runs/small.json [--device cuda]
-    torchrun --nproc_per_node 8 -m training train --config runs/big.json --device cuda
-    python -m training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
-    python -m training report-coarsening --data DATA.npz [--png FIGURE.png]
-    python -m training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
-    python -m training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
-    python -m training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
-    python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
-    python -m training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
+    python -m tactile_deploy.training train --config runs/small.json [--device cuda]
+    torchrun --nproc_per_node 8 -m tactile_deploy.training train --config runs/big.json --device cuda
+    python -m tactile_deploy.training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
+    python -m tactile_deploy.training report-coarsening --data DATA.npz [--png FIGURE.png]
+    python -m tactile_deploy.training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
+    python -m tactile_deploy.training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
+    python -m tactile_deploy.training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
+    python -m tactile_deploy.training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
+    python -m tactile_deploy.training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
 
 A mistake in a config, option or input file ends the command with one ``error: ...`` message and
-exit status 2 (:mod:`training.errors`); nothing is written then.
+exit status 2 (:mod:`tactile_deploy.training.errors`); nothing is written then.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from training.errors import UsageError, run_command
+from tactile_deploy.training.errors import UsageError, run_command
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,7 +45,7 @@ def _card_of(card_path: Path, model: Path) -> dict:
     import json
 
     if not card_path.is_file():
-        raise UsageError(f"--card {card_path}: no such file; give the model card written by python -m training export")
+        raise UsageError(f"--card {card_path}: no such file; give the model card written by python -m tactile_deploy.training export")
     card = json.loads(card_path.read_text())
     sha = hashlib.sha256(model.read_bytes()).hexdigest()
     if card.get("files", {}).get("onnx_sha256") != sha:
@@ -59,17 +59,17 @@ def _run_folder(path: str, option: str = "--run") -> Path:
     if not run.is_dir():
         raise UsageError(f"{option} {run}: no such folder; give the run_dir of a training run")
     if not (run / "config.json").is_file():
-        raise UsageError(f"{option} {run} holds no config.json: not a training run folder (python -m training train "
+        raise UsageError(f"{option} {run} holds no config.json: not a training run folder (python -m tactile_deploy.training train "
                          "--config CONFIG.json makes one)")
     return run
 
 
 def _main(argv: list[str]) -> int:
     if argv[:1] == ["export-adapt"]:
-        from training.adaptation.export import main as export_adapt
+        from tactile_deploy.training.adaptation.export import main as export_adapt
 
         return export_adapt(argv[1:])
-    parser = argparse.ArgumentParser(prog="python -m training", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tactile_deploy.training", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_train = sub.add_parser("train", help="pre-train both VAEs, then the latent projection")
     p_train.add_argument("--config", required=True, help="TrainConfig JSON file")
@@ -131,7 +131,7 @@ def _main(argv: list[str]) -> int:
 
     if args.command == "evaluate":
         from tactile_deploy.atomic import write_json
-        from training.evaluation import DOMAINS, EvaluationReport, run_evaluation
+        from tactile_deploy.training.evaluation import DOMAINS, EvaluationReport, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
         unknown = [d for d in domains if d not in DOMAINS]
@@ -149,7 +149,7 @@ def _main(argv: list[str]) -> int:
             model = Path(path)
             label = label or (model.stem if args.model and len(args.model) > 1 else "model")
             if not model.is_file():
-                raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m training export)")
+                raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m tactile_deploy.training export)")
             if label in models:
                 raise UsageError(f"--model {spec}: the label {label!r} is given twice; name them LABEL=PATH")
             from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
@@ -159,7 +159,7 @@ def _main(argv: list[str]) -> int:
             except ModelContractError as e:
                 raise UsageError(f"--model {model}: {e}") from None
             models[label] = model
-        from training.evaluation import markdown_table
+        from tactile_deploy.training.evaluation import markdown_table
 
         card_path = Path(args.card) if args.card else None
         if card_path is not None:
@@ -170,18 +170,18 @@ def _main(argv: list[str]) -> int:
         print(markdown_table(report))
         print(f"wrote {out}")
         if card_path is not None:
-            from training.card import write_card
+            from tactile_deploy.training.card import write_card
 
             label = next(iter(models))
             card["evaluation"] = {
-                "command": "python -m training evaluate " + " ".join(map(str, argv[1:])),
+                "command": "python -m tactile_deploy.training evaluate " + " ".join(map(str, argv[1:])),
                 "seed": args.seed, "report": str(out), "table": markdown_table(report, label)}
             write_card(card, card_path, card_path.with_suffix(".md"))
             print(f"wrote the evaluation into {card_path} and {card_path.with_suffix('.md')}")
         return 0
 
     if args.command == "slim-bundle":
-        from training.train import slim_bundle
+        from tactile_deploy.training.train import slim_bundle
 
         if Path(args.out).resolve() == Path(args.bundle).resolve():
             raise UsageError(f"--out {args.out} is the --bundle itself: write the slim bundle elsewhere")
@@ -194,8 +194,8 @@ def _main(argv: list[str]) -> int:
         import numpy as np
 
         from tactile_deploy.atomic import write_npz
-        from training.config import TrainConfig
-        from training.data import fresh_contacts
+        from tactile_deploy.training.config import TrainConfig
+        from tactile_deploy.training.data import fresh_contacts
 
         run = _run_folder(args.run)
         cfg = TrainConfig.load(run / "config.json")
@@ -214,13 +214,13 @@ def _main(argv: list[str]) -> int:
         return 0
 
     if args.command == "experiments":
-        from training.experiments import ExperimentConfig, run_experiments
+        from tactile_deploy.training.experiments import ExperimentConfig, run_experiments
 
         run_experiments(ExperimentConfig.load(args.config), args.out, tuple(args.only.split(",")))
         return 0
 
     if args.command == "envelope-bank":
-        from training.simulation.batched import EnvelopeBank
+        from tactile_deploy.training.simulation.batched import EnvelopeBank
         from tactile_deploy.indenters import get_indenter, list_indenters
 
         names = list_indenters("primitive") if args.indenters == "primitive" else args.indenters.split(",")
@@ -231,7 +231,7 @@ def _main(argv: list[str]) -> int:
     if args.command == "report-coarsening":
         import numpy as np
 
-        from training.reports import coarsening_figure, coarsening_table, markdown_table, pick_contacts
+        from tactile_deploy.training.reports import coarsening_figure, coarsening_table, markdown_table, pick_contacts
 
         with np.load(args.data) as d:
             disp = d["displacement_mm"][: args.n]
@@ -241,8 +241,8 @@ def _main(argv: list[str]) -> int:
         return 0
 
     if args.command == "train":
-        from training.config import TrainConfig, check_device
-        from training.train import STAGES
+        from tactile_deploy.training.config import TrainConfig, check_device
+        from tactile_deploy.training.train import STAGES
 
         cfg = TrainConfig.load(args.config)
         if args.device:
@@ -264,7 +264,7 @@ def _main(argv: list[str]) -> int:
                 raise UsageError(f"--time-budget {item}: expected STAGE=SECONDS with a stage of the config "
                                  f"({', '.join(s for s in STAGES if getattr(cfg, s, None) is not None)}) and seconds > 0")
             cfg = cfg.model_copy(update={stage: current.model_copy(update={"time_budget_s": seconds})})
-        from training.train import train
+        from tactile_deploy.training.train import train
 
         try:
             train(cfg)
@@ -274,7 +274,7 @@ def _main(argv: list[str]) -> int:
             print("interrupted; rerun the same command to resume", file=sys.stderr)
             return 130
         return 0
-    from training.export import SHIPPED_VARIANT, check_export, export_run
+    from tactile_deploy.training.export import SHIPPED_VARIANT, check_export, export_run
 
     variant = args.variant or SHIPPED_VARIANT
     out = Path(args.out)

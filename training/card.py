@@ -33,7 +33,7 @@ class CardEvaluation(StrictModel):
 
     command: str = Field(description="The command that wrote it (and the report).")
     seed: int = Field(ge=0, description="Seed of the fresh contacts.")
-    report: str = Field(description="The evaluation report (training.evaluation.EvaluationReport), path in the repository.")
+    report: str = Field(description="The evaluation report (tactile_deploy.training.evaluation.EvaluationReport), path in the repository.")
     table: str = Field(description="Markdown table: a row per domain, this graph beside the physics lift, targets.")
 
 
@@ -62,7 +62,7 @@ class ModelCard(StrictModel):
     intended_use: list[str] = []
     export_seconds: float
     evaluation: CardEvaluation | None = Field(
-        None, description="Per-domain evaluation of this graph (python -m training evaluate ... --card), when run.",
+        None, description="Per-domain evaluation of this graph (python -m tactile_deploy.training evaluate ... --card), when run.",
     )
 
 

@@ -1,6 +1,6 @@
 """Evaluation of exported predictors against the physics lift, domain by domain.
 
-``python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json``
+``python -m tactile_deploy.training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json``
 
 Domains (fresh contacts simulated on the CPU with seeds no training run uses; poses as in
 training: uniform in a disc of radius 12 mm, theta uniform):
@@ -21,7 +21,7 @@ needs no learning (:class:`tactile_deploy.fem.surface_to_volume.SurfaceToVolume`
 the sensing surface's normal displacement, read where each node has moved to in 3 passes, the
 linear FEM for the rest of the pad).
 
-Figures: :func:`training.metrics.mesh_metrics` (contact patch, deepest node, all nodes; per-node
+Figures: :func:`tactile_deploy.training.metrics.mesh_metrics` (contact patch, deepest node, all nodes; per-node
 Euclidean errors in um), for every domain and method, and the lift's contact-patch error over the
 model's (``lift_ratio``).
 """
@@ -36,7 +36,7 @@ import numpy as np
 from pydantic import Field
 
 from tactile_deploy.fileformat import StrictModel
-from training.metrics import MeshMetrics
+from tactile_deploy.training.metrics import MeshMetrics
 
 DOMAINS = ("primitives", "coulomb", "stick", "large_strain", "noisy", "unseen_shapes")
 DOMAIN_LABELS = {
@@ -76,7 +76,7 @@ class DomainNotMeasured(StrictModel):
 
 
 class EvaluationReport(StrictModel):
-    """``python -m training evaluate --out REPORT.json`` (e.g. docs/results/evaluation.json)."""
+    """``python -m tactile_deploy.training evaluate --out REPORT.json`` (e.g. docs/results/evaluation.json)."""
 
     models: dict[str, str] = Field(description="Label -> the ONNX model evaluated.")
     seed: int = Field(ge=0, description="Seed of the fresh contacts (no training run uses it).")
@@ -204,7 +204,7 @@ def onnx_displacements(model_path: Path, depth_mm: np.ndarray, batch: int = 32, 
 def evaluate_domain(data: DomainData, predictions: dict[str, np.ndarray], n_plane: int) -> dict:
     """Figures of each method's displacements (name -> (N, n, 3) mm) on ``data``, and each
     method's ``lift_ratio`` (the physics lift's contact-patch RMSE over the method's)."""
-    from training.metrics import mesh_metrics
+    from tactile_deploy.training.metrics import mesh_metrics
 
     methods = {name: mesh_metrics(p, data.displacement_mm, data.contact_mask, n_plane) for name, p in predictions.items()}
     lift = methods.get(PHYSICS_LIFT, {}).get("contact_patch_rmse_um")

@@ -16,8 +16,8 @@ mean latent. The metadata's ``ood_threshold`` is the 99th percentile of that sco
 Variants (``VARIANTS``):
 
 * ``naive``: the training modules as they are (COMA decoder, Chebyshev recursions as Gather tables);
-* ``fused``: the same function restructured (:mod:`training.fused`), exact to float rounding;
-* ``lean``: image encoder + projection + the lean grid decoder (:mod:`training.networks.grid_decoder`);
+* ``fused``: the same function restructured (:mod:`tactile_deploy.training.fused`), exact to float rounding;
+* ``lean``: image encoder + projection + the lean grid decoder (:mod:`tactile_deploy.training.networks.grid_decoder`);
 * ``*-fastood``: ``ood_score`` from the lean image decoder (:class:`LeanImageDecoder`, trained on
   the frozen image encoder) instead of the symmetric VAE decoder, which is half of the lean graph's
   time; the metadata's ``ood_threshold`` is then that decoder's held-out p99;
@@ -44,9 +44,9 @@ from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
 from tactile_deploy.onnx_runtime.metadata import write_metadata
 from tactile_deploy.onnx_runtime.quantize import quantize_int8
 from tactile_deploy.onnx_runtime.session import make_session
-from training.errors import UsageError
-from training.networks.predictor import Predictor
-from training.networks.surface_decoder import add_anchor, with_lateral
+from tactile_deploy.training.errors import UsageError
+from tactile_deploy.training.networks.predictor import Predictor
+from tactile_deploy.training.networks.surface_decoder import add_anchor, with_lateral
 
 VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood",
             "surface", "surface-fastood", "surface-int8", "surface-int8-fastood",
@@ -146,7 +146,7 @@ class DeployGraph(nn.Module):
 
 class SurfaceDeployGraph(nn.Module):
     """The surface-anchored path as one graph: depth (N, 1, R, R) mm -> (vertices, displacement
-    (N, n, 3) mm, ood_score (N,) mm) (:mod:`training.networks.surface_decoder`).
+    (N, n, 3) mm, ood_score (N,) mm) (:mod:`tactile_deploy.training.networks.surface_decoder`).
 
     Folded: 1 / depth_scale into the first convolution, the displacement scale into the decoder's
     1 x 1 head (channel 3 * layer + axis), depth_scale into the image decoder's last layer. The
@@ -196,7 +196,7 @@ class SurfaceDeployGraph(nn.Module):
 
 def lateral_lift_of(model: Predictor):
     """The lateral physics lift of the model's pad at its training data's Poisson ratio."""
-    from training.networks.lift import LateralLift
+    from tactile_deploy.training.networks.lift import LateralLift
 
     return LateralLift.for_pad(getattr(model, "nu", 0.48))
 
@@ -230,7 +230,7 @@ def deploy_module(model: Predictor, variant: str) -> nn.Module:
         dec.graphs.set_use_tables(True)
         return DeployGraph(model, dec, scale_mask, ood).eval()
     if base == "fused":
-        from training.fused import FusedComaDecoder
+        from tactile_deploy.training.fused import FusedComaDecoder
 
         return DeployGraph(model, FusedComaDecoder(model.mesh_vae.decoder), scale_mask, ood).eval()
     if base == "lean":
@@ -386,7 +386,7 @@ def check_export(run_dir: str | Path, out: str | Path, variant: str, overwrite: 
         raise UsageError(f"--run {run_dir}: no such folder; give the run_dir of a training run")
     for name in ("model.pt", "heldout.npz"):
         if not (run_dir / name).is_file():
-            raise UsageError(f"--run {run_dir} holds no {name}: give a finished training run (python -m training "
+            raise UsageError(f"--run {run_dir} holds no {name}: give a finished training run (python -m tactile_deploy.training "
                              "train --config CONFIG.json writes both)")
     if out.suffix != ".onnx" or out.name.startswith("-"):
         raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
@@ -403,7 +403,7 @@ def check_export(run_dir: str | Path, out: str | Path, variant: str, overwrite: 
 
 
 def heldout_seed(held) -> int | None:
-    """The generator seed of a run's heldout.npz written by ``python -m training heldout`` (None:
+    """The generator seed of a run's heldout.npz written by ``python -m tactile_deploy.training heldout`` (None:
     the held-out split of the training data)."""
     if "seed" in held:
         return int(held["seed"])
@@ -430,8 +430,8 @@ def export_run(
     leaves the previous set as it was."""
     import os
 
-    from training.card import build_card, write_card
-    from training.train import load_bundle
+    from tactile_deploy.training.card import build_card, write_card
+    from tactile_deploy.training.train import load_bundle
 
     run_dir, out = Path(run_dir), Path(out)
     variant = variant or SHIPPED_VARIANT
@@ -446,7 +446,7 @@ def export_run(
     t0 = time.perf_counter()
     calibration, calibration_info = None, None
     if is_int8:
-        from training.config import TrainConfig
+        from tactile_deploy.training.config import TrainConfig
 
         calibration, calibration_info = calibration_maps(TrainConfig.model_validate(bundle["config"]), heldout_seed=held_seed)
     fp32_variant = fp32_twin(variant)
@@ -476,8 +476,8 @@ def export_run(
             parity["shipped_vs_fp32_rms_diff_mm"] = float(np.sqrt(np.mean((final_disp[:k] - fp32_disp) ** 2)))
             parity["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(final_ood[:k] - fp32_ood).max())
         err = (final_disp - true).astype(np.float64)
-        from training.evaluation import physics_lift
-        from training.metrics import mesh_metrics
+        from tactile_deploy.training.evaluation import physics_lift
+        from tactile_deploy.training.metrics import mesh_metrics
 
         accuracy = {
             "n_samples": int(len(depth)),
@@ -533,7 +533,7 @@ def calibration_maps(cfg, n: int = 256, heldout_seed: int | None = None) -> tupl
     of the training split of the run's dataset folder, or ``n`` fresh contacts of its synthetic
     generator (another seed than the training one and ``heldout_seed``, simulated on the CPU).
     A dataset folder that cannot be read is a :class:`UsageError`."""
-    from training.data import fresh_contacts, load, split_by_contact
+    from tactile_deploy.training.data import fresh_contacts, load, split_by_contact
 
     if cfg.data.synthetic is not None:
         spec = cfg.data.synthetic

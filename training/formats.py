@@ -1,4 +1,4 @@
-"""The file formats of :mod:`training` and their committed JSON Schemas (``python -m training.formats``
+"""The file formats of :mod:`tactile_deploy.training` and their committed JSON Schemas (``python -m tactile_deploy.training.formats``
 rewrites them; see :mod:`tactile_deploy.fileformat`)."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from tactile_deploy.fileformat import Format, schemas_main
-from training.card import ModelCard
-from training.config import TrainConfig
-from training.evaluation import EvaluationReport
+from tactile_deploy.training.card import ModelCard
+from tactile_deploy.training.config import TrainConfig
+from tactile_deploy.training.evaluation import EvaluationReport
 
 _HERE = Path(__file__).resolve().parent
 
@@ -17,7 +17,7 @@ FORMATS = {f.name: f for f in (
     Format("training config (training/configs/*.json)", TrainConfig,
            _HERE / "train_config.schema.json"),
     Format("model card (exported/NAME.json)", ModelCard, _HERE / "model_card.schema.json"),
-    Format("evaluation report (python -m training evaluate --out, docs/results/evaluation.json)", EvaluationReport,
+    Format("evaluation report (python -m tactile_deploy.training evaluate --out, docs/results/evaluation.json)", EvaluationReport,
            _HERE / "evaluation_report.schema.json"),
 )}
 

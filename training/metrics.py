@@ -1,6 +1,6 @@
 """The accuracy figures of a predicted pad mesh, one definition for every report.
 
-Evaluation (``python -m training evaluate``), ``tactile-deploy bench predictor``, the training
+Evaluation (``python -m tactile_deploy.training evaluate``), ``tactile-deploy bench predictor``, the training
 run's held-out metrics and the model card all call :func:`mesh_metrics`. Errors are per node:
 the Euclidean distance (um) between the predicted and the true displacement (sensor frame), and
 each figure is the root mean square of those distances over a set of nodes:

@@ -32,13 +32,13 @@ import torch
 
 from tactile_deploy.atomic import atomic_path, write_json, write_npz, write_text
 from tactile_deploy.safe_torch import load_torch_file
-from training import distributed
-from training.config import StageConfig, TrainConfig
-from training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
-from training.errors import UsageError
-from training.networks.coarsening import build_hierarchy
-from training.networks.image_vae import vae_loss
-from training.networks.predictor import Predictor
+from tactile_deploy.training import distributed
+from tactile_deploy.training.config import StageConfig, TrainConfig
+from tactile_deploy.training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
+from tactile_deploy.training.errors import UsageError
+from tactile_deploy.training.networks.coarsening import build_hierarchy
+from tactile_deploy.training.networks.image_vae import vae_loss
+from tactile_deploy.training.networks.predictor import Predictor
 
 BUNDLE_FORMAT = 1
 STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder", "finetune", "surface")
@@ -112,7 +112,7 @@ class SurfaceTrainer(torch.nn.Module):
         self.moved = model.cfg.surface.anchor == "moved"
 
     def forward(self, x: torch.Tensor, sample: bool):
-        from training.networks.surface_decoder import add_anchor
+        from tactile_deploy.training.networks.surface_decoder import add_anchor
 
         maps, _ = self.encoder.feature_maps(x)
         h = self.encoder.fc(maps[-1])
@@ -648,7 +648,7 @@ def _augmentation(cfg: TrainConfig, model: Predictor, device: torch.device, rank
     """x (B, 1, R, R) normalised depth -> augmented copy; None without ``cfg.augmentation``."""
     if cfg.augmentation is None:
         return None
-    from training.augment import Augmenter
+    from tactile_deploy.training.augment import Augmenter
 
     aug = Augmenter(cfg.augmentation, cfg.model.image.resolution, device=device)
     generator = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + rank + 1)
@@ -667,7 +667,7 @@ def evaluate(model: Predictor, data: ContactData, device: torch.device, batch: i
     ood / ood_lean: quantiles of the reconstruction RMSE (mm) on these in-distribution maps, by
     the image VAE's decoder / the lean image decoder (the deployed ood_score).
     """
-    from training.metrics import mesh_metrics
+    from tactile_deploy.training.metrics import mesh_metrics
 
     model.eval()
     err2 = true2 = rec_err2 = 0.0
@@ -746,7 +746,7 @@ def plot_curves(history: dict, path: Path) -> None:
 def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]:
     """Rebuild the trained predictor from ``model.pt`` (checks the pad mesh hash)."""
     if not Path(path).is_file():
-        raise UsageError(f"training bundle {path} not found; train a run first (python -m training train "
+        raise UsageError(f"training bundle {path} not found; train a run first (python -m tactile_deploy.training train "
                          "--config CONFIG.json) or give its model.pt")
     try:
         bundle = load_torch_file(path, map_location=device)
@@ -772,7 +772,7 @@ def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]
         wrong = [k for k in missing if k.startswith(kept)] + list(unexpected)
         if wrong:
             raise UsageError(f"{path}: a slim bundle that does not match its config ({len(wrong)} tensors missing or "
-                             f"unexpected, e.g. {wrong[0]}); make it again (python -m training slim-bundle)")
+                             f"unexpected, e.g. {wrong[0]}); make it again (python -m tactile_deploy.training slim-bundle)")
     else:
         model.load_state_dict(state)
     model.eval()

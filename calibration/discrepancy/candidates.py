@@ -11,7 +11,7 @@ and what a change of it costs to simulate (``route``):
 * ``"view"``: an optics effect that moves where the camera sees the pad: depth maps made through
   the sensor's calibrated pipeline see the surface through the changed view
   (:mod:`tactile_deploy.sensors.depth_view`); measured frames are the variant's own frames
-  through the pipeline (:mod:`calibration.discrepancy.imaging`). Both reuse the contact's FEM
+  through the pipeline (:mod:`tactile_deploy.calibration.discrepancy.imaging`). Both reuse the contact's FEM
   solution;
 * ``"readout"``: a departure of the depth pipeline itself (a gain across the field, blur,
   saturated shading), applied to the map.
@@ -23,7 +23,7 @@ anisotropy of either sign along any image direction; the chart takes anisotropy 
 the rest into the scale). Coordinates in ``refine_coords`` have no effect where the primary
 ones are null (a distortion's centre, the depth-gain exponent of a view) or pin down the shape
 only once the effect is found (a dome's apex): they join the fit when the candidate's table is
-re-centred on a fit away from the null value (:mod:`calibration.discrepancy.tables`).
+re-centred on a fit away from the null value (:mod:`tactile_deploy.calibration.discrepancy.tables`).
 ``fixed`` parameters are those the first tabulation uses instead of the effect's defaults
 (the views' depth-gain exponent half-way between a resampled map and an integrating pipeline).
 

@@ -8,7 +8,7 @@ Data flow of :func:`collect_presses` (``tactile-deploy rig collect``)::
          indenter held at full depth the camera's frames are grabbed and the gauge read
       -> frames (and, with the unit's plugin, its depth maps), the commanded contacts, the
          forces, one contact id per press
-      -> the measured-data .npz of :mod:`calibration.discrepancy.measured` (plus the rig's own
+      -> the measured-data .npz of :mod:`tactile_deploy.calibration.discrepancy.measured` (plus the rig's own
          record of every press, ``rig_log``: a :class:`CollectionLog` as JSON)
 
 A press the force limit stopped is not recorded (no frame at a known depth); the log says which.
@@ -30,7 +30,7 @@ from typing import Literal
 import numpy as np
 from pydantic import ConfigDict, Field
 
-from calibration.rig.indent import PressRecord, check_press_depth
+from tactile_deploy.calibration.rig.indent import PressRecord, check_press_depth
 from tactile_deploy.fileformat import STRICT, StrictModel
 
 #: Version of :class:`CollectionLog`.
@@ -126,11 +126,11 @@ def collect_presses(rig, grab: Callable[[int], np.ndarray], plan: list[PlannedCo
                     reference_frames: int = 8, pipeline=None, source: str = "",
                     plugin: str | None = None, keep_frames: bool = True,
                     retract: Callable[[], None] | None = None, progress=None):
-    """Press every planned contact with ``rig`` (an :class:`~calibration.rig.IndentationRig`,
+    """Press every planned contact with ``rig`` (an :class:`~tactile_deploy.calibration.rig.IndentationRig`,
     connected and homed) and grab ``frames_per_press`` frames with ``grab(n) -> (n, H, W, 3)
     uint8`` at each; ``pipeline`` (``frame_to_depth``) adds depth maps. Returns
     ``(MeasuredData, CollectionLog)`` (module docstring). ``progress(k)`` after each press."""
-    from calibration.discrepancy.measured import MeasuredData
+    from tactile_deploy.calibration.discrepancy.measured import MeasuredData
 
     if frames_per_press < 1:
         raise ValueError(f"frames_per_press must be >= 1, got {frames_per_press}")
@@ -185,7 +185,7 @@ def collect_presses(rig, grab: Callable[[int], np.ndarray], plan: list[PlannedCo
 
 def save_collection(path: str | Path, data, log: CollectionLog) -> None:
     """The measured-data .npz with the rig's log (atomic)."""
-    from calibration.discrepancy.measured import measured_arrays
+    from tactile_deploy.calibration.discrepancy.measured import measured_arrays
     from tactile_deploy.atomic import write_npz
 
     arrays = measured_arrays(data)

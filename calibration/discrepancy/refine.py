@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.discrepancy.reproduce import ContactReproducer
-from calibration.discrepancy.selection import TableFit
-from calibration.discrepancy.tables import CandidateTable, ResponseTables, recentre_table
+from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer
+from tactile_deploy.calibration.discrepancy.selection import TableFit
+from tactile_deploy.calibration.discrepancy.tables import CandidateTable, ResponseTables, recentre_table
 
 #: Steps of the re-centred tables, as fractions of the candidate's first step.
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.1, 0.04)

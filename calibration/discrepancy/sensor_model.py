@@ -11,7 +11,7 @@ wizard writes one into the plugin folder as ``sensor_model.json`` (:func:`unit_s
 * optics: the unit's calibrated camera mapping, with the lights, noise and exposure of the
   family's shipped virtual sensor (a template: depth maps through the unit's plugin do not
   depend on them; frames imaged through the model do, so give the plugin's depth maps unless
-  the optics were fitted to the unit, ``python -m calibration.optics_fit``);
+  the optics were fitted to the unit, ``python -m tactile_deploy.calibration.optics_fit``);
 * no effects: the discrepancy workflow finds and adds them (``--apply``).
 
 ``--sensor`` takes a shipped virtual sensor's name, a model JSON path, or a plugin (name or

@@ -12,15 +12,15 @@ coordinate, an additive model that the refinement re-centres until it is exact a
 
 Maps are those of :meth:`ContactReproducer.depth_map`: a candidate that changes only the view or
 the read-out reuses the contact's FEM solution. :func:`recentre_table` tabulates a candidate
-again around a fit (:mod:`calibration.discrepancy.refine`).
+again around a fit (:mod:`tactile_deploy.calibration.discrepancy.refine`).
 
 Everything is kept on each contact's region of interest (ROI): the pad pixels where the base map
 or any tabulated change exceeds ``ROI_THRESHOLD_MM``, dilated by ``ROI_DILATE_PX``; outside it
 every candidate predicts the same map. Fits, cross-validation and the bootstrap then run on these
-tables alone (:mod:`calibration.discrepancy.selection`); the selected effect is re-simulated
+tables alone (:mod:`tactile_deploy.calibration.discrepancy.selection`); the selected effect is re-simulated
 exactly.
 
-With measured frames (the reproducer has an imaging path, :mod:`calibration.discrepancy.imaging`)
+With measured frames (the reproducer has an imaging path, :mod:`tactile_deploy.calibration.discrepancy.imaging`)
 every tabulated map is an imaged map: the base, the candidates' values (optical ones included:
 the variant's frame through the calibrated pipeline, no view; read-out ones: the imaged map with
 the read-out applied) and the exact re-simulations;
@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from calibration.discrepancy.candidates import Candidate, lagrange_weights
-from calibration.discrepancy.reproduce import ContactReproducer, is_round
+from tactile_deploy.calibration.discrepancy.candidates import Candidate, lagrange_weights
+from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer, is_round
 from tactile_deploy.fem.material import NU_MAX_VALIDATED
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.sensors.config import EffectSpec

@@ -9,8 +9,8 @@ Data flow of :func:`calibrate_recording`::
     circles: annotated (axes checked) or detected   checks.check_annotation_axes / detection
     ball radius vs circles                          checks.check_ball_radius
     frames rectified onto the imaging grid          (the runtime's own rectifier)
-    shading model fitted (calibrate shading's fit)  calibration.shading.fit.fit_shading
-    held-out presses (k-fold)                       calibration.shading.evaluate.cross_validate
+    shading model fitted (calibrate shading's fit)  tactile_deploy.calibration.shading.fit.fit_shading
+    held-out presses (k-fold)                       tactile_deploy.calibration.shading.evaluate.cross_validate
     plugin folder assembled beside the target, checked by the runtime's loader, renamed into
     place (an existing plugin only with overwrite)
 
@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.recording.checks import check_annotation_axes, check_ball_radius, view_mapping
-from calibration.recording.errors import PlausibilityError
-from calibration.recording.load import Recording, load_recording
+from tactile_deploy.calibration.recording.checks import check_annotation_axes, check_ball_radius, view_mapping
+from tactile_deploy.calibration.recording.errors import PlausibilityError
+from tactile_deploy.calibration.recording.load import Recording, load_recording
 
 #: Material used when no forces were recorded (E is then not identifiable).
 PRIOR_E_MPA = 0.3
@@ -80,7 +80,7 @@ def _grid_circles(circles_raw: np.ndarray, camera) -> np.ndarray:
 
 
 def _detect_all(rec: Recording) -> np.ndarray:
-    from calibration.shading.circles import ContactNotFoundError, detect_contact_circle
+    from tactile_deploy.calibration.shading.circles import ContactNotFoundError, detect_contact_circle
 
     out = []
     for f, name in zip(rec.frames, rec.names):
@@ -102,12 +102,12 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                         folds: int = 5, shallow_presses: bool = False,
                         say: Callable[[str], None] = print) -> RecordingCalibration:
     """Calibrate a plugin from recorded ball presses (module docstring). Raises
-    :class:`~calibration.recording.errors.PlausibilityError`,
-    :class:`~calibration.shading.presses.PressDataError` or
+    :class:`~tactile_deploy.calibration.recording.errors.PlausibilityError`,
+    :class:`~tactile_deploy.calibration.shading.presses.PressDataError` or
     :class:`~tactile_deploy.runtime.plugins.PluginError` naming what to fix."""
-    from calibration.shading.evaluate import cross_validate
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import PressSet
+    from tactile_deploy.calibration.shading.evaluate import cross_validate
+    from tactile_deploy.calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.presses import PressSet
     from tactile_deploy.imaging.shading import DepthFromShading
     from tactile_deploy.pad.family import get_family
     from tactile_deploy.runtime.pipeline import Rectifier, rectify_frame, resample_to_grid
@@ -146,7 +146,7 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
     camera, turns, view_notes = view_mapping(w, h, mm_per_px, family, scale_given)
     notes += view_notes
     if rec.circles is not None:
-        from calibration.shading.circles import ContactNotFoundError, detect_contact_circle
+        from tactile_deploy.calibration.shading.circles import ContactNotFoundError, detect_contact_circle
 
         detected = {}
         for i in np.linspace(0, len(rec.frames) - 1, min(8, len(rec.frames))).astype(int):

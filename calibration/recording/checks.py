@@ -1,6 +1,6 @@
 """Plausibility checks of a ball-press recording against its stated ball, scale and pad.
 
-Each check raises :class:`~calibration.recording.errors.PlausibilityError` naming the input that
+Each check raises :class:`~tactile_deploy.calibration.recording.errors.PlausibilityError` naming the input that
 is wrong, what was found, and what to do:
 
 * :func:`view_mapping`: the frames at ``--mm-per-px`` must fit the pad of the family (a scale in
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from calibration.recording.errors import PlausibilityError
+from tactile_deploy.calibration.recording.errors import PlausibilityError
 
 #: Every contact radius below this fraction of the ball radius: a diameter given as the radius.
 DIAMETER_RATIO = 0.55

@@ -22,10 +22,10 @@ def calibrate_from_recording(sensor: str, pad: str | None, presses: Path,
                              annotations: Path | None, mm_per_px: float | None,
                              plugins_dir: Path | None, out: Path | None, overwrite: bool,
                              folds: int, shallow_presses: bool = False) -> None:
-    """Run :func:`calibration.recording.build.calibrate_recording` and print what it did."""
-    from calibration.recording.build import calibrate_recording
-    from calibration.recording.errors import PlausibilityError
-    from calibration.shading.presses import PressDataError
+    """Run :func:`tactile_deploy.calibration.recording.build.calibrate_recording` and print what it did."""
+    from tactile_deploy.calibration.recording.build import calibrate_recording
+    from tactile_deploy.calibration.recording.errors import PlausibilityError
+    from tactile_deploy.calibration.shading.presses import PressDataError
     from tactile_deploy.pad.family import FAMILIES
     from tactile_deploy.runtime.plugins import PluginError
 

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.recording.errors import PlausibilityError
-from calibration.shading.presses import IMAGE_SUFFIXES, PressDataError, read_annotations
+from tactile_deploy.calibration.recording.errors import PlausibilityError
+from tactile_deploy.calibration.shading.presses import IMAGE_SUFFIXES, PressDataError, read_annotations
 from tactile_deploy.runtime.reference import contact_edge_score
 
 #: A frame scoring below this fraction of the presses' median contact-edge score has no contact.
@@ -98,7 +98,7 @@ def _images(folder: Path) -> list[Path]:
 def load_recording(presses: str | os.PathLike, reference: str | os.PathLike | None = None,
                    annotations: str | os.PathLike | None = None) -> Recording:
     """Read a press folder (module docstring); raises :class:`PlausibilityError` or
-    :class:`~calibration.shading.presses.PressDataError` naming the file and what to fix."""
+    :class:`~tactile_deploy.calibration.shading.presses.PressDataError` naming the file and what to fix."""
     folder = Path(presses)
     if not folder.is_dir():
         raise PressDataError(f"--presses {folder}: folder not found")

@@ -10,7 +10,7 @@ there at rest), and fit
   error** (um);
 * a sphere with the radius free too: its radius against R is the **radius error**.
 
-This is the mesh-level counterpart of :mod:`calibration.shading.evaluate` (which fits the depth
+This is the mesh-level counterpart of :mod:`tactile_deploy.calibration.shading.evaluate` (which fits the depth
 map) and needs nothing but the mesh, the circle and the mapping: an independent check of
 calibration + depth + physics lift on real presses, whose true surface inside the contact is the
 ball. Units: mm, um for RMS; sensor frame.

@@ -1,8 +1,8 @@
 """A simulated rig pressing a virtual sensor with any indenter: the bench of ``rig collect
 --simulated`` and of its tests.
 
-A :class:`~calibration.rig.simulated.SimulatedRig` serves a G-code stage and a force gauge on
-two pseudo-terminals; an :class:`~calibration.rig.IndentationRig` drives them over pyserial
+A :class:`~tactile_deploy.calibration.rig.simulated.SimulatedRig` serves a G-code stage and a force gauge on
+two pseudo-terminals; an :class:`~tactile_deploy.calibration.rig.IndentationRig` drives them over pyserial
 exactly as it drives hardware. The stage carries the indenter (a library name or mesh path, at
 ``theta_deg`` about z): the gauge reads the virtual sensor's FEM force for the contact the stage
 position implies (through the rig's true stage frame), and :meth:`VirtualPressBench.grab`
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.rig.indent import IndentationRig
+from tactile_deploy.calibration.rig.indent import IndentationRig
 from tactile_deploy.indenters import ContactPose
 
 
@@ -22,13 +22,13 @@ class VirtualPressBench:
     """A virtual sensor on a simulated rig (module docstring).
 
     sensor : a :class:`~tactile_deploy.sensors.virtual.VirtualSensor`. indenter : library name
-    or mesh path. rig_overrides : :class:`~calibration.rig.RigConfig` fields (dicts for
+    or mesh path. rig_overrides : :class:`~tactile_deploy.calibration.rig.RigConfig` fields (dicts for
     ``stage`` and ``gauge``) of the config the rig connects with. Use it with ``with``.
     """
 
     def __init__(self, sensor, indenter: str, theta_deg: float = 0.0, seed: int = 0,
                  rig_overrides: dict | None = None):
-        from calibration.rig.simulated import SimulatedRig
+        from tactile_deploy.calibration.rig.simulated import SimulatedRig
 
         self.sensor = sensor
         self.indenter_name = indenter

@@ -95,7 +95,7 @@ def calibrate_callback(
         if wizard_only:
             _fail(f"{', '.join(wizard_only)} belong to the wizard, not to a calibration from "
                   "recorded presses (--presses)")
-        from calibration.recording.cli import calibrate_from_recording
+        from tactile_deploy.calibration.recording.cli import calibrate_from_recording
 
         calibrate_from_recording(sensor, pad, presses, ball_radius_mm, reference, annotations,
                                  mm_per_px, plugins_dir, out, overwrite, folds, shallow_presses)
@@ -104,9 +104,9 @@ def calibrate_callback(
         _fail(f"{', '.join(recording_only)} go with --presses DIR (a calibration from recorded "
               "presses); the wizard takes --source and --config")
 
-    from calibration.wizard.config import WizardConfigError, load_wizard_config
-    from calibration.wizard.ui import AutoUI, InteractiveUI
-    from calibration.wizard.wizard import WizardError, run_wizard
+    from tactile_deploy.calibration.wizard.config import WizardConfigError, load_wizard_config
+    from tactile_deploy.calibration.wizard.ui import AutoUI, InteractiveUI
+    from tactile_deploy.calibration.wizard.wizard import WizardError, run_wizard
 
     if not yes and not sys.stdin.isatty():
         _fail("the wizard asks questions: run it in a terminal, or pass --yes (with --config) "

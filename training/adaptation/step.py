@@ -1,6 +1,6 @@
 """The self-supervised adaptation step (paper, "Self-Supervised Adaptation") as torch modules.
 
-Data flow of :meth:`AdaptationStep.forward` (train mode; the module :mod:`training.adaptation.export`
+Data flow of :meth:`AdaptationStep.forward` (train mode; the module :mod:`tactile_deploy.training.adaptation.export`
 captures with ``torch.export``)::
 
     depth (B, 1, 128, 128) mm   (a sensor's depth map I, model grid)
@@ -24,8 +24,8 @@ import copy
 import torch
 from torch import nn
 
-from training.adaptation.render import DEFAULT_PIXELS_PER_TRIANGLE, DepthRenderer
-from training.networks.predictor import Predictor
+from tactile_deploy.training.adaptation.render import DEFAULT_PIXELS_PER_TRIANGLE, DepthRenderer
+from tactile_deploy.training.networks.predictor import Predictor
 
 #: Parameter prefixes the step updates: image encoder (convolutions, FC, mean head) and projection.
 TRAINABLE_PREFIXES = ("convs.", "fc.", "mu.", "projection.")
@@ -86,7 +86,7 @@ class AdaptationStep(nn.Module):
         if self.kind == "lean":
             z = self.mu(self.fc(self.convs(x)))
             return self.decoder(self.projection(z)) * self.displacement_scale_mm
-        from training.networks.surface_decoder import add_anchor
+        from tactile_deploy.training.networks.surface_decoder import add_anchor
 
         maps = []
         for layer in self.convs:
@@ -97,7 +97,7 @@ class AdaptationStep(nn.Module):
         d = self.decoder(maps, z) * self.displacement_scale_mm
         uz = self.anchor.read(depth_mm, d, self.moved)
         if self.lateral is not None:
-            from training.networks.surface_decoder import with_lateral
+            from tactile_deploy.training.networks.surface_decoder import with_lateral
 
             d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]))
         return add_anchor(d, uz)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.networks.surface_decoder import SurfaceAnchor
+from tactile_deploy.training.networks.surface_decoder import SurfaceAnchor
 
 
 class LiftGraph(nn.Module):

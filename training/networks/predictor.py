@@ -20,11 +20,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.config import ModelConfig, ProjectionConfig
-from training.networks.coarsening import Hierarchy
-from training.networks.grid_decoder import GridDecoder
-from training.networks.image_vae import _ACT, ImageVAE, LeanImageDecoder
-from training.networks.mesh_vae import MeshVAE
+from tactile_deploy.training.config import ModelConfig, ProjectionConfig
+from tactile_deploy.training.networks.coarsening import Hierarchy
+from tactile_deploy.training.networks.grid_decoder import GridDecoder
+from tactile_deploy.training.networks.image_vae import _ACT, ImageVAE, LeanImageDecoder
+from tactile_deploy.training.networks.mesh_vae import MeshVAE
 
 
 class LatentProjection(nn.Module):
@@ -97,7 +97,7 @@ class Predictor(nn.Module):
         self.deploy_decoder = "coma"
         self.ood_decoder = LeanImageDecoder(cfg.ood_decoder, cfg.image.latent, cfg.image.resolution)
         if cfg.surface is not None:
-            from training.networks.surface_decoder import SurfaceAnchor, SurfaceDecoder
+            from tactile_deploy.training.networks.surface_decoder import SurfaceAnchor, SurfaceDecoder
 
             self.surface_decoder = SurfaceDecoder(cfg.surface, cfg.image.widths, cfg.image.latent,
                                                   cfg.image.resolution, lv.plane_xy_mm, lv.n_layers)
@@ -127,7 +127,7 @@ class Predictor(nn.Module):
         sensing layer's z. ``maps``, ``z``: the encoder's feature maps and latent when computed."""
         if maps is None:
             maps, z = self.image_vae.encoder.feature_maps(self.normalise_depth(depth_mm))
-        from training.networks.surface_decoder import add_anchor, with_lateral
+        from tactile_deploy.training.networks.surface_decoder import add_anchor, with_lateral
 
         residual = self.surface_decoder(maps, z)
         scale = self.norm.displacement_scale_mm
@@ -138,7 +138,7 @@ class Predictor(nn.Module):
 
     def use_lateral_lift(self, lift) -> None:
         """Take the sensing nodes' lateral displacement from ``lift``
-        (:class:`training.networks.lift.LateralLift`: u_z -> x, y by the pad's FEM); None: the decoder's."""
+        (:class:`tactile_deploy.training.networks.lift.LateralLift`: u_z -> x, y by the pad's FEM); None: the decoder's."""
         if lift is not None and not hasattr(self, "surface_decoder"):
             raise ValueError("the lateral lift completes the surface decoder; this model has none")
         self.lateral_lift = lift

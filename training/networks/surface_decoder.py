@@ -28,7 +28,7 @@ sees the whole map through its coarse levels, so new shapes are made of patterns
 Grids: image layout (row 0 = largest y, as the depth map); pixel (r, c) of a grid of side G is
 centred at ``x = -h + (c + 0.5) p``, ``y = h - (r + 0.5) p`` with ``p = 2h / G``. Units: anchor in
 mm; the residual in units of the displacement scale, as every decoder of
-:mod:`training.networks.predictor`.
+:mod:`tactile_deploy.training.networks.predictor`.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.config import SurfaceDecoderConfig
+from tactile_deploy.training.config import SurfaceDecoderConfig
 
 
 def bilinear_taps(xy_mm: np.ndarray, resolution: int, half_extent_mm: float) -> tuple[np.ndarray, np.ndarray]:

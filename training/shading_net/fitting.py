@@ -1,12 +1,12 @@
 """Fit the read-out network to training crops (torch; CPU or a CUDA device).
 
-    python -m training.shading_net.fitting --crops CROPS.npz --weights-out W.pt [--epochs 60]
+    python -m tactile_deploy.training.shading_net.fitting --crops CROPS.npz --weights-out W.pt [--epochs 60]
         [--width 8] [--seed 5] [--batch 32] [--lr 2e-3] [--device cuda] [--init W0.pt]
 
 needs only numpy and torch (no OpenCV or pydantic), so a crop file made by
-``python -m training.shading_net --data-only`` can be trained on a GPU machine; the weights
+``python -m tactile_deploy.training.shading_net --data-only`` can be trained on a GPU machine; the weights
 (a torch state dict with the settings and per-epoch losses beside it) come back to
-``python -m training.shading_net --weights W.pt``, which exports them with their card.
+``python -m tactile_deploy.training.shading_net --weights W.pt``, which exports them with their card.
 
 Loss: mean squared error of the depth gradients (mm per mm, clipped to +-``gradient_clip``) and
 of the depth (in ``DEPTH_UNIT_MM``), the gradient channels weighted by ``gradient_weight``;
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
 
     from .crops import load_crops
 
-    ap = argparse.ArgumentParser(prog="python -m training.shading_net.fitting",
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.shading_net.fitting",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--crops", type=Path, required=True, help="crop file (.npz)")
     ap.add_argument("--weights-out", type=Path, required=True, help="state dict to write (.pt)")

@@ -1,6 +1,6 @@
 """Train the read-out network of a design and export it (ONNX + model card).
 
-    python -m training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
+    python -m tactile_deploy.training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
         --out exported/gelslim_readout.onnx --overwrite
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
@@ -14,7 +14,7 @@ and the final loss.
 
 The crops can be trained elsewhere (a GPU machine without OpenCV or pydantic):
 ``--data-only --data-cache CROPS.npz`` writes them and stops; ``python -m
-training.shading_net.fitting --crops CROPS.npz --weights-out W.pt`` trains there; ``--weights
+tactile_deploy.training.shading_net.fitting --crops CROPS.npz --weights-out W.pt`` trains there; ``--weights
 W.pt`` (with the same data options) exports those weights with their card here.
 """
 
@@ -48,8 +48,8 @@ def _cache_spec(args) -> dict:
 
 
 def _check_args(args) -> None:
-    """Check every option before any work (:class:`training.errors.UsageError`)."""
-    from training.errors import UsageError
+    """Check every option before any work (:class:`tactile_deploy.training.errors.UsageError`)."""
+    from tactile_deploy.training.errors import UsageError
 
     for option, value, low in (("--units", args.units, 1), ("--presses", args.presses, 1), ("--epochs", args.epochs, 1),
                                ("--width", args.width, 1), ("--seed", args.seed, 0)):
@@ -87,7 +87,7 @@ def _check_args(args) -> None:
         raise UsageError("--data-only needs --data-cache (where the crops are written)")
     if args.weights is not None and not args.weights.is_file():
         raise UsageError(f"--weights {args.weights} not found: give the .pt written by "
-                         "python -m training.shading_net.fitting")
+                         "python -m tactile_deploy.training.shading_net.fitting")
     cache = args.data_cache
     if cache is not None and cache.exists():
         from .crops import CropFileError, read_spec
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     from .family import Tolerances, family_configs
     from .fitting import fit_network
 
-    ap = argparse.ArgumentParser(prog="python -m training.shading_net", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.shading_net", description=__doc__.splitlines()[0])
     ap.add_argument("--design", default="gelslim1",
                     help="virtual sensor whose design the units share (default: %(default)s)")
     ap.add_argument("--units", type=int, default=8, help="virtual units of the design (default: %(default)s)")
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data-only", action="store_true",
                     help="write the crops to --data-cache and stop (to train them elsewhere)")
     ap.add_argument("--weights", type=Path, default=None,
-                    help="export these weights (.pt of python -m training.shading_net.fitting) instead of training")
+                    help="export these weights (.pt of python -m tactile_deploy.training.shading_net.fitting) instead of training")
     ap.add_argument("--out", type=Path, default=Path("exported/gelslim_readout.onnx"),
                     help="ONNX file to write, relative to the current folder (default: %(default)s); its card "
                     "<stem>.json goes beside it")
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     kinds, counts = np.unique(crops.kinds, return_counts=True)
     card = {
         "model": args.out.name,
-        "command": "python -m training.shading_net " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m tactile_deploy.training.shading_net " + " ".join(sys.argv[1:] if argv is None else argv),
         "sha256": hashlib.sha256(args.out.read_bytes()).hexdigest(),
         "what": "learned read-out: rectified camera frame features -> depth (mm) on the imaging grid "
                 "(tactile_deploy/imaging/learned_readout.py describes the inputs and outputs)",

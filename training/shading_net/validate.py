@@ -1,6 +1,6 @@
 """Compare read-out networks on presses of a unit none of them was trained on.
 
-    python -m training.shading_net.validate A.onnx B.onnx ... [--sensor gelslim2] [--presses 60]
+    python -m tactile_deploy.training.shading_net.validate A.onnx B.onnx ... [--sensor gelslim2] [--presses 60]
         [--seed 20261126] [--cache PRESSES.npz]
 
 Presses of the virtual sensor ``--sensor`` (another unit of the design than the training family's),
@@ -36,7 +36,7 @@ def main(argv=None) -> int:
 
     from .data import PressMix, UnitPresses, unit_presses
 
-    ap = argparse.ArgumentParser(prog="python -m training.shading_net.validate",
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.shading_net.validate",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("onnx", type=Path, nargs="+", help="read-out networks (.onnx)")
     ap.add_argument("--sensor", default="gelslim2", help="virtual unit (default: %(default)s)")

@@ -3,14 +3,14 @@
 After the plugin is written this step
 
 1. writes the unit's sensor model into the plugin folder (``sensor_model.json``,
-   :func:`calibration.discrepancy.sensor_model.unit_sensor_model`: the unit's camera mapping,
+   :func:`tactile_deploy.calibration.discrepancy.sensor_model.unit_sensor_model`: the unit's camera mapping,
    E and nu, the family's lights), so that ``tactile-deploy discrepancy --sensor <plugin>``
    runs;
 2. with a rig, presses the calibration ball at a plan of commanded contacts across the pad
    (``discrepancy.n_presses`` of them, 0: none), grabs the frames with the ball held, reads the
    forces, turns the frames into depth with the new plugin, and writes it all as measured data
    (``discrepancy_presses.npz`` in the work folder,
-   :func:`calibration.discrepancy.collect.collect_presses`; the same as ``tactile-deploy rig
+   :func:`tactile_deploy.calibration.discrepancy.collect.collect_presses`; the same as ``tactile-deploy rig
    collect``);
 
 and reports the command that looks for what the model misses.
@@ -18,12 +18,12 @@ and reports the command that looks for what the model misses.
 
 from __future__ import annotations
 
-from calibration.discrepancy.collect import collect_presses, plan_contacts, save_collection
-from calibration.discrepancy.sensor_model import MODEL_FILE, SensorModelError, unit_sensor_model
-from calibration.fem_fit.result import FemResultError, read_fem_result
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.station import Ball
-from calibration.wizard.work_data import load_camera
+from tactile_deploy.calibration.discrepancy.collect import collect_presses, plan_contacts, save_collection
+from tactile_deploy.calibration.discrepancy.sensor_model import MODEL_FILE, SensorModelError, unit_sensor_model
+from tactile_deploy.calibration.fem_fit.result import FemResultError, read_fem_result
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.station import Ball
+from tactile_deploy.calibration.wizard.work_data import load_camera
 from tactile_deploy.runtime.pipeline import ImagingPipeline
 from tactile_deploy.runtime.plugins import SensorPlugin
 from tactile_deploy.sensors.config import save_sensor_config
