@@ -13,7 +13,7 @@ Measures, in one run:
   exported program), and the renderer's share of the step;
 * **renderer**: the step's fixed-shape differentiable renderer (the training module the program
   was captured from) against the batched rasteriser
-  of the simulator (:class:`training.simulation.depth_torch.TorchDepthCamera`, no gradient,
+  of the simulator (:class:`tactile_deploy.training.simulation.depth_torch.TorchDepthCamera`, no gradient,
   variable shapes), forward at batch 16;
 * **200 frames**: ``tactile-deploy adapt`` on a copy of the plugin fed ``--frames`` frames of its
   virtual sensor (frames rendered beforehand, not timed): imaging, filter, held-out split,
@@ -155,13 +155,13 @@ def main(argv=None) -> int:
     step_med = statistics.median(step_s)
 
     # renderer share and the simulator's rasteriser as baseline (forward, no gradient)
-    from training.simulation.depth_torch import TorchDepthCamera
+    from tactile_deploy.training.simulation.depth_torch import TorchDepthCamera
     from tactile_deploy.pad.asset import load_pad
 
     pad = load_pad()
     with torch.no_grad():
         disp = program(d, t, weight)[3].to(args.device)
-    from training.adaptation.render import DepthRenderer
+    from tactile_deploy.training.adaptation.render import DepthRenderer
 
     renderer = DepthRenderer.for_pad(pad, pixels_per_triangle=program.card.pixels_per_triangle).to(args.device)
     with torch.no_grad():
@@ -178,8 +178,8 @@ def main(argv=None) -> int:
 
     eager = None
     if args.bundle is not None:
-        from training.adaptation.step import AdaptationStep
-        from training.train import load_bundle
+        from tactile_deploy.training.adaptation.step import AdaptationStep
+        from tactile_deploy.training.train import load_bundle
 
         model, _ = load_bundle(args.bundle)
         em = AdaptationStep(model).train().to(args.device)

@@ -5,7 +5,7 @@
 
 Two models: one trained on clean simulated depth maps (default: the shipped bundle with its ONNX
 model and committed step), one with augmentation (a training run folder, e.g. the augmented twin
-of :mod:`training.adaptation.augmented_twin`). A run folder without its exports gets the ONNX
+of :mod:`tactile_deploy.training.adaptation.augmented_twin`). A run folder without its exports gets the ONNX
 graph and the adaptation step exported into ``out/adapt/models/<clean|aug>/`` (the runtime's
 files, as ``tactile-deploy adapt`` uses them). Every adaptation runs through the runtime's own code
 (:mod:`tactile_deploy.adapt.step`): ``n_adapt`` depth maps of the target domain to adapt on,
@@ -43,8 +43,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bench.report import write_section  # noqa: E402
-from calibration.shading.real_gelsight import real_gelsight_plugin  # noqa: E402
-from training.adaptation.domains import (  # noqa: E402
+from tactile_deploy.calibration.shading.real_gelsight import real_gelsight_plugin  # noqa: E402
+from tactile_deploy.training.adaptation.domains import (  # noqa: E402
     REAL_PLUGIN_FOLDER,
     Domain,
     load_or_make,
@@ -58,13 +58,13 @@ def export_model(run: Path, out: Path, log=print) -> tuple[Path, Path]:
     """Shipped ONNX graph (+ fp32 twin, card) and adaptation step of a training run, into
     ``out``; reused when present. A bundle ``NAME.pt`` with ``NAME.onnx`` and its step
     ``NAME_adapt/`` beside it (``exported/gelslim_mesh.pt``) is used as it is. Returns (onnx, step folder)."""
-    from training.adaptation.export import export_step
-    from training.export import export_run
+    from tactile_deploy.training.adaptation.export import export_step
+    from tactile_deploy.training.export import export_run
 
     if run.suffix == ".pt":
         onnx, step = run.with_suffix(".onnx"), run.with_name(run.stem + "_adapt")
         if not (onnx.is_file() and (step / "card.json").is_file()):
-            raise FileNotFoundError(f"{run}: {onnx} or {step}/card.json is missing; export them (python -m training "
+            raise FileNotFoundError(f"{run}: {onnx} or {step}/card.json is missing; export them (python -m tactile_deploy.training "
                                     f"export-adapt --bundle {run} --onnx {onnx})")
         return onnx, step
     if (run / "gelslim_mesh.onnx").is_file() and (run / "gelslim_mesh_adapt" / "card.json").is_file():
@@ -322,6 +322,6 @@ def tables_markdown(results: dict) -> str:
 
 
 if __name__ == "__main__":
-    from training.errors import run_command
+    from tactile_deploy.training.errors import run_command
 
     raise SystemExit(run_command(main))

@@ -6,7 +6,7 @@ false-positive rate, parameter recovery, and the runtime of a 200-contact run.
     (or: tactile-deploy bench discrepancy)
 
 Measured data come from the shipped virtual sensor (full 5,380-node pad) with effects switched
-on that the workflow is not told (:mod:`calibration.discrepancy.synthetic`): per seed a new set
+on that the workflow is not told (:mod:`tactile_deploy.calibration.discrepancy.synthetic`): per seed a new set
 of commanded contacts (spheres of 4 and 6 mm, a 3 mm flat punch, a lying cylinder; positions
 within 8 mm of the centre, 0.3-1.0 mm deep), 5 um pixel noise, 1 % force noise; parameters drawn
 from each effect's realistic range, 30-100 % of its extreme. The response tables of a contact
@@ -24,7 +24,7 @@ presses at the same commanded contacts would).
 
 With ``--frames`` the measured data are the virtual sensor's RGB camera frames (its own camera
 noise), turned into depth by the sensor's shipped plugin; the workflow images the model's frames
-through the same pipeline (:mod:`calibration.discrepancy.imaging`). The two optical candidates
+through the same pipeline (:mod:`tactile_deploy.calibration.discrepancy.imaging`). The two optical candidates
 (``lens_distortion``, ``pixel_scale``) are then hidden too, each with only its fitted parameter
 set (``k2`` and the like stay at zero). Results go to their own section of BENCHMARKS.md.
 
@@ -66,13 +66,13 @@ def run(sensor_name: str, seeds: int, n_contacts: int, null_seeds: int, runtime_
 
     import numpy as np
 
-    from calibration.discrepancy.apply import apply_effect
-    from calibration.discrepancy.candidates import candidate_library
-    from calibration.discrepancy.synthetic import draw_hidden, random_contacts
-    from calibration.discrepancy.synthetic import (
+    from tactile_deploy.calibration.discrepancy.apply import apply_effect
+    from tactile_deploy.calibration.discrepancy.candidates import candidate_library
+    from tactile_deploy.calibration.discrepancy.synthetic import draw_hidden, random_contacts
+    from tactile_deploy.calibration.discrepancy.synthetic import (
         hidden_effect_data as _hidden_effect_data,
     )
-    from calibration.discrepancy.workflow import (
+    from tactile_deploy.calibration.discrepancy.workflow import (
         DiscrepancyOptions,
         find_discrepancy,
         prepare_tables,

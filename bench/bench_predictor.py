@@ -5,7 +5,7 @@
                                     [--json results.json] [--small] [--no-write]
     (or: tactile-deploy bench predictor)
 
-For each variant of :mod:`training.export` (one ONNX graph: depth [N, 1, 128, 128] mm ->
+For each variant of :mod:`tactile_deploy.training.export` (one ONNX graph: depth [N, 1, 128, 128] mm ->
 vertices, displacement [N, 5380, 3] mm and ood_score [N]) this measures, in one run:
 
 * p50 / p95 latency of one call at batch 1 (onnxruntime, 1 intra-op thread), and the time per
@@ -53,8 +53,8 @@ def _small_model():
     import numpy as np
     import torch
 
-    from training.config import DataConfig, SyntheticData, TrainConfig
-    from training.train import build_model
+    from tactile_deploy.training.config import DataConfig, SyntheticData, TrainConfig
+    from tactile_deploy.training.train import build_model
 
     cfg = TrainConfig(run_dir="unused", data=DataConfig(synthetic=SyntheticData(n_samples=1)))
     torch.manual_seed(0)
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
     import torch
 
     from tactile_deploy.onnx_runtime.session import make_session
-    from training.export import VARIANTS, DeployGraph, export_variant, run_session, torch_reference
+    from tactile_deploy.training.export import VARIANTS, DeployGraph, export_variant, run_session, torch_reference
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", default=str(ROOT / "exported" / "gelslim_mesh.pt"), help="training bundle (model.pt)")
@@ -115,9 +115,9 @@ def main(argv=None) -> int:
         model, bundle, depth, true = _small_model()
         variants, rounds = ["lean", "lean-int8-fastood"], min(rounds, 20)
     else:
-        from training.config import TrainConfig
-        from training.data import fresh_contacts
-        from training.train import load_bundle
+        from tactile_deploy.training.config import TrainConfig
+        from tactile_deploy.training.data import fresh_contacts
+        from tactile_deploy.training.train import load_bundle
 
         if args.run:
             run = Path(args.run)
@@ -143,8 +143,8 @@ def main(argv=None) -> int:
     if args.small:
         calib = depth
     else:  # maps of the training distribution, as the shipped export calibrates on; never the held-out ones
-        from training.config import TrainConfig
-        from training.export import calibration_maps, heldout_seed
+        from tactile_deploy.training.config import TrainConfig
+        from tactile_deploy.training.export import calibration_maps, heldout_seed
 
         calib, _ = calibration_maps(TrainConfig.model_validate(bundle["config"]),
                                     heldout_seed=heldout_seed(held) if args.run else None)

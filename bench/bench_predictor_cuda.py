@@ -47,7 +47,7 @@ def run(bundle: str, device_name: str = "cuda", rounds: int = 300) -> dict:
     import numpy as np
     import torch
 
-    from training.train import load_bundle
+    from tactile_deploy.training.train import load_bundle
 
     device = torch.device(device_name)
     model, meta = load_bundle(bundle, device_name)

@@ -128,8 +128,8 @@ def torch_reference(model_path, bundle: Path | None = None):
     meta = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"]
                                 ).get_modelmeta().custom_metadata_map
     try:
-        from training.export import deploy_module
-        from training.train import load_bundle
+        from tactile_deploy.training.export import deploy_module
+        from tactile_deploy.training.train import load_bundle
     except ImportError as e:
         return None, f"training package not importable ({e})"
     torch.set_num_threads(1)

@@ -23,7 +23,7 @@ presses), then the shading model fitted on its presses: without targets for the 
 around the contacts, with them (the ball press solved by the FEM of the pad) and the table's
 former fallback (the colour bin's whole-image mean, 32 bins), and as the wizard fits it now
 (FEM targets, the colour-polynomial fallback, 24 bins); each run through the runtime's imaging
-pipeline on two sets of new presses (:mod:`calibration.shading.virtual_check`): the bench set (8
+pipeline on two sets of new presses (:mod:`tactile_deploy.calibration.shading.virtual_check`): the bench set (8
 at least two contact radii inside the view, 8 within 1.2-1.7 contact radii of its edges) and a
 larger second set with another seed (24 inside, 8 near the edges), so that a setting is not
 judged on 8 presses alone; beside them the integration of the presses' true gradients, i.e.
@@ -49,7 +49,7 @@ MM_PER_PX = 1 / 19.58
 
 
 def load():
-    from calibration.shading.presses import load_presses
+    from tactile_deploy.calibration.shading.presses import load_presses
 
     if not (DATA / "annotate.csv").is_file():
         raise SystemExit(f"real ball-press data not found at {DATA.resolve()} (see "
@@ -73,8 +73,8 @@ def _median_ms(fn, n: int) -> tuple[float, float]:
 
 
 def accuracy(presses, folds: int = 7, mlp_steps: int = 800):
-    """Cross-validated comparison (:func:`calibration.shading.compare.compare_methods`)."""
-    from calibration.shading.compare import compare_methods
+    """Cross-validated comparison (:func:`tactile_deploy.calibration.shading.compare.compare_methods`)."""
+    from tactile_deploy.calibration.shading.compare import compare_methods
 
     return compare_methods(presses, BALL_RADIUS_MM, MM_PER_PX, folds=folds, mlp_steps=mlp_steps,
                            workers=2)
@@ -84,8 +84,8 @@ def speed(presses, n: int = 50) -> dict[str, tuple[float, float]]:
     """(wall, CPU) median times of the runtime steps (ms) and of the calibration (s)."""
     import numpy as np
 
-    from calibration.shading.baselines import fit_rgb_table
-    from calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.baselines import fit_rgb_table
+    from tactile_deploy.calibration.shading.fit import fit_shading
     from tactile_deploy.imaging.poisson import poisson_solver
     from tactile_deploy.imaging.shading import DepthFromShading, frame_offset
 
@@ -119,8 +119,8 @@ def figure(presses, path: Path, fold: int = 0, folds: int = 7, mlp_steps: int = 
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from calibration.shading.compare import METHOD_NAMES, method_fitters
-    from calibration.shading.evaluate import fit_sphere
+    from tactile_deploy.calibration.shading.compare import METHOD_NAMES, method_fitters
+    from tactile_deploy.calibration.shading.evaluate import fit_sphere
     from tactile_deploy.atomic import atomic_path
 
     n = len(presses)
@@ -183,8 +183,8 @@ def figure(presses, path: Path, fold: int = 0, folds: int = 7, mlp_steps: int = 
 def markdown(presses, comp, folds: int, timings: dict) -> str:
     """The BENCHMARKS.md section: the three methods side by side, the targets, the speeds."""
     from bench.report import machine_line
-    from calibration.shading.compare import METHOD_NAMES
-    from calibration.shading.evaluate import markdown_table
+    from tactile_deploy.calibration.shading.compare import METHOD_NAMES
+    from tactile_deploy.calibration.shading.evaluate import markdown_table
 
     ours = comp.summaries["lut"]
     worst_radius = max(abs(r.radius_error) for r in comp.results["lut"])
@@ -250,10 +250,10 @@ def run_virtual_wizard(config, folder: Path) -> tuple[dict, object, object, obje
     import numpy as np
     from rich.console import Console
 
-    from calibration.wizard.state import WorkFolder
-    from calibration.wizard.work_data import load_camera, load_reference
-    from calibration.wizard.ui import AutoUI
-    from calibration.wizard.wizard import EXIT_OK, run_wizard
+    from tactile_deploy.calibration.wizard.state import WorkFolder
+    from tactile_deploy.calibration.wizard.work_data import load_camera, load_reference
+    from tactile_deploy.calibration.wizard.ui import AutoUI
+    from tactile_deploy.calibration.wizard.wizard import EXIT_OK, run_wizard
 
     folder.mkdir(parents=True, exist_ok=True)
     work = WorkFolder(folder / "work")
@@ -277,21 +277,21 @@ def virtual_accuracy(small: bool = False) -> dict:
 
     import numpy as np
 
-    from calibration.fem_fit.result import read_fem_result
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import PressSet
-    from calibration.shading.readout_gain import readout_depth_gain
-    from calibration.shading.virtual_check import (
+    from tactile_deploy.calibration.fem_fit.result import read_fem_result
+    from tactile_deploy.calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.presses import PressSet
+    from tactile_deploy.calibration.shading.readout_gain import readout_depth_gain
+    from tactile_deploy.calibration.shading.virtual_check import (
         contact_region_errors,
         near_contact_errors,
         oracle_weighted_depths,
         virtual_ball_presses,
         virtual_shape_presses,
     )
-    from calibration.wizard.config import shading_fit_config, wizard_config_from_dict
-    from calibration.wizard.press_data import press_profiles
-    from calibration.wizard.unit_readout import finetune_readout_on_presses
-    from calibration.wizard.work_data import rectifier_for
+    from tactile_deploy.calibration.wizard.config import shading_fit_config, wizard_config_from_dict
+    from tactile_deploy.calibration.wizard.press_data import press_profiles
+    from tactile_deploy.calibration.wizard.unit_readout import finetune_readout_on_presses
+    from tactile_deploy.calibration.wizard.work_data import rectifier_for
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.imaging.learned_readout import LearnedReadout
     from tactile_deploy.imaging.poisson import poisson_solver

@@ -74,7 +74,7 @@ def draw_contacts(n: int, n_indenters: int, seed: int, device="cpu", radius_mm=R
 
 
 def build_bank(names_arg: str, bank_path: str | None, device):
-    from training.simulation.batched import EnvelopeBank
+    from tactile_deploy.training.simulation.batched import EnvelopeBank
 
     if bank_path and Path(bank_path).exists():
         return EnvelopeBank.load_npz(bank_path, device)
@@ -228,7 +228,7 @@ def throughput(sim, bank, n: int, batch: int, seed: int, max_seconds: float, rad
 
 # ----------------------------------------------------------------------------------- main
 def run_friction(args, friction: str, mesh, bank, device, results: dict, out_path) -> None:
-    from training.simulation.batched import BatchedContactSimulator, compute_operators_torch
+    from tactile_deploy.training.simulation.batched import BatchedContactSimulator, compute_operators_torch
     from tactile_deploy.fem.material import Material
 
     material = Material(nu=NU, friction=friction)

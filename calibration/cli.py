@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import typer
 
-from calibration.camera.cli import camera_app
-from calibration.fem_command import fem_app
-from calibration.shading.cli import shading_app
-from calibration.wizard.cli import calibrate_callback
+from tactile_deploy.calibration.camera.cli import camera_app
+from tactile_deploy.calibration.fem_command import fem_app
+from tactile_deploy.calibration.shading.cli import shading_app
+from tactile_deploy.calibration.wizard.cli import calibrate_callback
 
 calibrate_app = typer.Typer(
     help="Calibrate a sensor: the wizard (--sensor NEW), or one step (camera mapping, shading "

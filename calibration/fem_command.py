@@ -91,8 +91,8 @@ def _check_indenter(where: str, name: str) -> None:
 
 
 def read_contacts(path: Path) -> list:
-    """:class:`~calibration.fem_fit.fit.MatchedContact` of each line of a contacts CSV."""
-    from calibration.fem_fit.fit import MatchedContact
+    """:class:`~tactile_deploy.calibration.fem_fit.fit.MatchedContact` of each line of a contacts CSV."""
+    from tactile_deploy.calibration.fem_fit.fit import MatchedContact
     from tactile_deploy.indenters import ContactPose
 
     path = Path(path)
@@ -175,9 +175,9 @@ def fem_command(
 ) -> None:
     """Fit E (forces) of the gel to measured contacts, and nu (depth maps) when --nu-grid has
     several values."""
-    from calibration.fem_fit.fit import fit_fem_parameters
-    from calibration.fem_fit.operator_bank import OperatorBank
-    from calibration.fem_fit.result import FemResult, write_fem_result
+    from tactile_deploy.calibration.fem_fit.fit import fit_fem_parameters
+    from tactile_deploy.calibration.fem_fit.operator_bank import OperatorBank
+    from tactile_deploy.calibration.fem_fit.result import FemResult, write_fem_result
     from tactile_deploy.camera.depth import DepthCamera
     from tactile_deploy.outputs import OutputPathError, check_output_file
     from tactile_deploy.pad.asset import load_pad
@@ -199,10 +199,10 @@ def fem_command(
         if contacts is not None:
             matched = read_contacts(contacts)
         else:
-            from calibration.wizard.config import wizard_config_from_dict
-            from calibration.wizard.context import StepError
-            from calibration.wizard.press_data import contacts_from_work
-            from calibration.wizard.state import WorkFolder
+            from tactile_deploy.calibration.wizard.config import wizard_config_from_dict
+            from tactile_deploy.calibration.wizard.context import StepError
+            from tactile_deploy.calibration.wizard.press_data import contacts_from_work
+            from tactile_deploy.calibration.wizard.state import WorkFolder
 
             wf = WorkFolder(work)
             if not wf.exists():

@@ -1,15 +1,15 @@
-"""The file formats of :mod:`calibration` and their committed JSON Schemas (``python -m calibration.formats``
+"""The file formats of :mod:`tactile_deploy.calibration` and their committed JSON Schemas (``python -m tactile_deploy.calibration.formats``
 rewrites them; see :mod:`tactile_deploy.fileformat`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from calibration.fem_fit.result import FemResult
-from calibration.rig.config import RIG_CONFIG_SCHEMA_PATH, RigConfig
-from calibration.wizard.config import SCHEMA_PATH as WIZARD_CONFIG_SCHEMA
-from calibration.wizard.config import WizardConfig
-from calibration.wizard.state import WizardState
+from tactile_deploy.calibration.fem_fit.result import FemResult
+from tactile_deploy.calibration.rig.config import RIG_CONFIG_SCHEMA_PATH, RigConfig
+from tactile_deploy.calibration.wizard.config import SCHEMA_PATH as WIZARD_CONFIG_SCHEMA
+from tactile_deploy.calibration.wizard.config import WizardConfig
+from tactile_deploy.calibration.wizard.state import WizardState
 from tactile_deploy.fileformat import Format, schemas_main
 
 _HERE = Path(__file__).resolve().parent

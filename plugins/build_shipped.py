@@ -8,7 +8,7 @@ virtual sensors of the same names, plus a demo clip.
                                                        # shading model instead of the learned
                                                        # read-out (faster, less accurate)
 
-Each plugin is made by ``tactile-deploy calibrate`` (:func:`calibration.wizard.wizard.run_wizard`,
+Each plugin is made by ``tactile-deploy calibrate`` (:func:`tactile_deploy.calibration.wizard.wizard.run_wizard`,
 docs/calibration.md), run non-interactively with the committed config ``plugins/wizard/NAME.json``
 on the virtual sensor ``NAME`` (``tactile_deploy.sensors``: the contact FEM of the pad, RGB
 optics, the unit's effects and noise) pressed by the simulated rig over pseudo-terminals, exactly
@@ -203,9 +203,9 @@ def run_wizard_on_virtual(name: str, out: Path, work: Path, model: Path,
     """``tactile-deploy calibrate --sensor NAME --source virtual:NAME --rig simulated --yes
     --config plugins/wizard/NAME.json --out OUT --work WORK --model MODEL --overwrite``, the
     config's ``readout`` set to ``readout`` when given, or removed with ``shading_only``."""
-    from calibration.wizard.config import load_wizard_config
-    from calibration.wizard.ui import AutoUI
-    from calibration.wizard.wizard import EXIT_OK, run_wizard
+    from tactile_deploy.calibration.wizard.config import load_wizard_config
+    from tactile_deploy.calibration.wizard.ui import AutoUI
+    from tactile_deploy.calibration.wizard.wizard import EXIT_OK, run_wizard
 
     config = load_wizard_config(WIZARD_CONFIGS / f"{name}.json")
     if shading_only:
@@ -290,7 +290,7 @@ def build(name: str, folder: Path, model: Path, overwrite: bool, work: Path | No
         raise SystemExit(f"{folder / MANIFEST_NAME} exists; pass --overwrite to rebuild it")
     if not model.is_file():
         raise SystemExit(f"the family model {model} does not exist: export it first "
-                         "(python -m training export ...) or pass --model")
+                         "(python -m tactile_deploy.training export ...) or pass --model")
     t0 = time.perf_counter()
     # assembled beside the target: the model's relative path stays valid after the rename
     staging = folder.parent / f".{folder.name}-build"
@@ -396,7 +396,7 @@ def main(argv=None) -> int:
         readout = None if args.readout is None else args.readout.resolve()
         if readout is not None and not readout.is_file():
             raise SystemExit(f"the learned read-out {readout} does not exist: train it "
-                             "(python -m training.shading_net)")
+                             "(python -m tactile_deploy.training.shading_net)")
         info = build(name, args.out / name, args.model.resolve(), args.overwrite, work, readout,
                      args.shading_model)
         print(json.dumps(info, indent=2))

@@ -3,7 +3,7 @@
 Every JSON file (and JSON header inside an ``.npz``) is a pydantic model on :class:`StrictModel`:
 unknown fields are refused, NaN and infinity are refused, and a loaded document is frozen. Each
 format is listed, with the path of its committed JSON Schema, in the ``formats`` module of its
-package (:mod:`tactile_deploy.formats`, ``calibration.formats``, ``training.formats``);
+package (:mod:`tactile_deploy.formats`, ``tactile_deploy.calibration.formats``, ``tactile_deploy.training.formats``);
 ``python -m tactile_deploy.formats`` (and the others) rewrite the schemas, and one test fails
 when a committed schema differs from its model's.
 """

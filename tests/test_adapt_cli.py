@@ -30,7 +30,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def plugin_copy(tmp_path):
     """The shipped gelslim2 plugin copied (without adapted versions), pointing at the family model."""
     if not (STEP / "card.json").is_file():
-        pytest.fail(f"{STEP} is missing: export it with `python -m training export-adapt --bundle MODEL.pt` "
+        pytest.fail(f"{STEP} is missing: export it with `python -m tactile_deploy.training export-adapt --bundle MODEL.pt` "
                     "for the committed exported/gelslim_mesh.onnx")
     from tactile_deploy.runtime.plugins import copy_plugin
 

@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from tactile_deploy.camera.depth import DepthCamera  # noqa: E402
-from training.adaptation.render import DepthRenderer  # noqa: E402
+from tactile_deploy.training.adaptation.render import DepthRenderer  # noqa: E402
 
 
 def _presses(pad, rng, n, lateral_mm):

@@ -36,10 +36,10 @@ def tiny(tmp_path_factory):
     from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
     from tactile_deploy.onnx_runtime.metadata import write_metadata
     from tactile_deploy.pad.asset import load_pad
-    from training.adaptation.export import export_step
-    from training.config import TrainConfig
-    from training.export import export_variant
-    from training.train import BUNDLE_FORMAT, build_model, git_commit
+    from tactile_deploy.training.adaptation.export import export_step
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.export import export_variant
+    from tactile_deploy.training.train import BUNDLE_FORMAT, build_model, git_commit
 
     folder = tmp_path_factory.mktemp("tiny")
     cfg = TrainConfig.model_validate({"run_dir": str(folder), "model": TINY, "data": {"synthetic": {"n_samples": 2}}})
@@ -79,7 +79,7 @@ def tiny(tmp_path_factory):
 
 
 def _maps(n, seed):
-    from training.adaptation.export import check_inputs
+    from tactile_deploy.training.adaptation.export import check_inputs
 
     rng = np.random.default_rng(seed)
     base = check_inputs(Path("/nonexistent/model.pt"), 64)[:, 0]
@@ -107,7 +107,7 @@ def test_export_writes_a_complete_card(tiny):
 def test_runtime_program_equals_the_eager_step(tiny):
     """Same loss and same gradients as the eager module built from the training code."""
     from tactile_deploy.adapt.step import StepProgram
-    from training.adaptation.step import AdaptationStep
+    from tactile_deploy.training.adaptation.step import AdaptationStep
 
     program = StepProgram.load(tiny["step"])
     eager = AdaptationStep(tiny["model"]).train()

@@ -11,8 +11,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from training.augment import Augmenter  # noqa: E402
-from training.config import AugmentationConfig, TrainConfig  # noqa: E402
+from tactile_deploy.training.augment import Augmenter  # noqa: E402
+from tactile_deploy.training.config import AugmentationConfig, TrainConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 OFF = dict(probability=1.0, blur_sigma_mm=(0.0, 0.0), halo_amount=(0.0, 0.0), gain=(1.0, 1.0),
@@ -29,7 +29,7 @@ def _bumps(n, rng):
 
 
 def test_configs_without_augmentation_train_as_before():
-    from training.train import _augmentation
+    from tactile_deploy.training.train import _augmentation
 
     configs = ROOT / "training" / "configs"
     cfg = TrainConfig.load(configs / "cpu_small.json")
@@ -136,7 +136,7 @@ def test_noise_reference_and_probability(tmp_path):
 def test_training_hook_augments_in_mm():
     """The training hook works on depth normalised by depth_scale_mm: a planted gain g gives
     g x the normalised map whatever the scale."""
-    from training.train import _augmentation
+    from tactile_deploy.training.train import _augmentation
 
     class Norm:
         depth_scale_mm = torch.tensor(0.8)

@@ -18,8 +18,8 @@ import scipy.sparse.linalg as spla
 torch = pytest.importorskip("torch")
 
 from tactile_deploy.camera.depth import DepthCamera  # noqa: E402
-from training.simulation.depth_torch import TorchDepthCamera, TriangleRasterizer  # noqa: E402
-from training.simulation.batched import (  # noqa: E402
+from tactile_deploy.training.simulation.depth_torch import TorchDepthCamera, TriangleRasterizer  # noqa: E402
+from tactile_deploy.training.simulation.batched import (  # noqa: E402
     BatchedContact,
     BatchedContactSimulator,
     EnvelopeBank,

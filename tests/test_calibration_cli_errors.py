@@ -94,7 +94,7 @@ def test_camera_out_must_be_json_and_not_an_input(tmp_path):
     assert "--out" in msg and "reference.png" in msg and ".json" in msg and "'.png'" in msg
     assert ref.read_bytes() == before
     board = tmp_path / "board.json"
-    from calibration.camera.charuco import CharucoBoardSpec
+    from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec
 
     board.write_text(CharucoBoardSpec().model_dump_json())
     msg = _error(_invoke("calibrate", "camera", "--frames", frames, "--target", "charuco",
@@ -209,7 +209,7 @@ def test_fem_refuses_unknown_indenters_while_reading(tmp_path):
 
 
 def test_fem_contacts_with_byte_order_mark(tmp_path):
-    from calibration.fem_command import read_contacts
+    from tactile_deploy.calibration.fem_command import read_contacts
 
     path = _contacts(tmp_path, "z.npy,sphere_r4,0,0,0.5,0.3")
     path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
@@ -220,7 +220,7 @@ def test_fem_contacts_with_byte_order_mark(tmp_path):
 @pytest.fixture
 def fake_fem(monkeypatch):
     """``calibrate fem`` with the FEM replaced: records the nu grid, returns ``result``."""
-    from calibration.fem_fit import fit, operator_bank
+    from tactile_deploy.calibration.fem_fit import fit, operator_bank
 
     seen = {}
 
@@ -237,7 +237,7 @@ def fake_fem(monkeypatch):
 
 
 def _result(**changes):
-    from calibration.fem_fit.fit import FemFitResult
+    from tactile_deploy.calibration.fem_fit.fit import FemFitResult
 
     base = {"nu": 0.48, "nu_std": 0.0, "E_mpa": 0.3, "E_std_mpa": 0.0,
             "E_note": "from 1 measured forces", "friction": "frictionless",
@@ -294,7 +294,7 @@ def test_wizard_source_that_cannot_open_writes_no_state(tmp_path):
 
 # ------------------------------------------------------------- 6. tracebacks on user mistakes
 def test_annotations_with_spaces_and_byte_order_mark(tmp_path):
-    from calibration.shading.presses import read_annotations
+    from tactile_deploy.calibration.shading.presses import read_annotations
 
     p = tmp_path / "ann.csv"
     p.write_bytes(b"\xef\xbb\xbfimg_names, center_x, center_y, radius\r\n"
@@ -430,8 +430,8 @@ def test_shading_summary_labels_the_in_sample_residual(tmp_path, shared_data):
 
 # ------------------------------------------------------------------------------ 9./10. rig
 def test_rig_press_deeper_than_the_pad_is_refused():
-    from calibration.rig import rig_config_from_dict
-    from calibration.rig.indent import PAD_THICKNESS_MM, IndentationRig
+    from tactile_deploy.calibration.rig import rig_config_from_dict
+    from tactile_deploy.calibration.rig.indent import PAD_THICKNESS_MM, IndentationRig
     from tactile_deploy.pad.geometry import PadGeometry
 
     assert PAD_THICKNESS_MM == PadGeometry().thickness_mm

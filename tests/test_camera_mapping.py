@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.camera.charuco import (
+from tactile_deploy.calibration.camera.charuco import (
     CharucoBoardSpec,
     TargetNotFoundError,
     board_corners_mm,
@@ -30,9 +30,9 @@ from calibration.camera.charuco import (
     print_sheet,
     save_print_sheet,
 )
-from calibration.camera.dots import assign_grid_indices, calibrate_dots, dot_grid_positions_mm
-from calibration.camera.fitting import CalibrationError
-from calibration.camera.synthetic import (
+from tactile_deploy.calibration.camera.dots import assign_grid_indices, calibrate_dots, dot_grid_positions_mm
+from tactile_deploy.calibration.camera.fitting import CalibrationError
+from tactile_deploy.calibration.camera.synthetic import (
     VirtualCamera,
     board_to_sensor,
     render_charuco_frame,
@@ -398,7 +398,7 @@ def test_compact_remap_matches_float_tables():
 
 
 def test_benchmark_runs_at_small_settings():
-    from calibration.camera.benchmark import run
+    from tactile_deploy.calibration.camera.benchmark import run
 
     result = run(n_calls=3)
     assert set(result) == {"rectify_gray_us", "rectify_bgr_us", "rectify_gray_compact_us",
@@ -480,7 +480,7 @@ def test_load_reports_nan_and_broken_json(tmp_path):
 def test_cli_camera_dots_and_make_board(tmp_path, dots_scene):
     from typer.testing import CliRunner
 
-    from calibration.camera.cli import camera_app
+    from tactile_deploy.calibration.camera.cli import camera_app
 
     _, s2u, pressed, reference = dots_scene
     frames = tmp_path / "frames"
@@ -512,7 +512,7 @@ def test_cli_camera_dots_and_make_board(tmp_path, dots_scene):
 def test_cli_camera_charuco_single_frame_with_figure(tmp_path, charuco_scene):
     from typer.testing import CliRunner
 
-    from calibration.camera.cli import camera_app
+    from tactile_deploy.calibration.camera.cli import camera_app
 
     camera, s2u, frame = charuco_scene
     frames = tmp_path / "frames"

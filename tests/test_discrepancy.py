@@ -18,16 +18,16 @@ import json
 import numpy as np
 import pytest
 
-from calibration.discrepancy.apply import apply_effect
-from calibration.discrepancy.candidates import CANDIDATES, lagrange_weights
-from calibration.discrepancy.measured import (
+from tactile_deploy.calibration.discrepancy.apply import apply_effect
+from tactile_deploy.calibration.discrepancy.candidates import CANDIDATES, lagrange_weights
+from tactile_deploy.calibration.discrepancy.measured import (
     MeasuredDataError,
     load_measured,
     save_measured,
 )
-from calibration.discrepancy.noise import estimate_noise
-from calibration.discrepancy.synthetic import draw_hidden, hidden_effect_data, random_contacts
-from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy, prepare_tables
+from tactile_deploy.calibration.discrepancy.noise import estimate_noise
+from tactile_deploy.calibration.discrepancy.synthetic import draw_hidden, hidden_effect_data, random_contacts
+from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy, prepare_tables
 from tactile_deploy.optics import Light, OpticsModel, simple_camera
 from tactile_deploy.sensors.config import EffectSpec, VirtualSensorConfig, load_sensor_config
 from tactile_deploy.sensors.effects import REGISTRY, effect_class
@@ -204,8 +204,8 @@ def test_noise_is_estimated_under_smooth_structure():
 
 
 def test_view_warp_is_identity_for_the_same_camera_and_stretches_for_pixel_scale(small_sim):
-    from calibration.discrepancy.reproduce import ContactReproducer
-    from calibration.discrepancy.view_warp import ViewWarp
+    from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer
+    from tactile_deploy.calibration.discrepancy.view_warp import ViewWarp
 
     sensor = make_sensor(small_sim)
     repro = ContactReproducer(sensor)

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from calibration.discrepancy.apply import apply_effect
-from calibration.discrepancy.measured import (
+from tactile_deploy.calibration.discrepancy.apply import apply_effect
+from tactile_deploy.calibration.discrepancy.measured import (
     MeasuredDataError,
     load_measured,
     save_measured,
@@ -54,7 +54,7 @@ def _arrays(**changes) -> dict:
 @pytest.fixture
 def no_analysis(monkeypatch):
     """The simulator and the analysis fail the test when reached: errors must come first."""
-    from calibration.discrepancy import workflow
+    from tactile_deploy.calibration.discrepancy import workflow
     from tactile_deploy.cli import common
 
     def reached(*args, **kwargs):
@@ -141,7 +141,7 @@ def test_csv_with_an_empty_contact_id_cell_names_the_row(tmp_path, monkeypatch, 
 
 
 def test_unforeseen_loading_errors_are_one_line_too(tmp_path, monkeypatch, no_analysis):
-    from calibration.discrepancy import measured
+    from tactile_deploy.calibration.discrepancy import measured
 
     def broken(path):
         raise KeyError("x_mm")
@@ -228,7 +228,7 @@ def test_outputs_are_checked_before_the_analysis(tmp_path, monkeypatch, no_analy
 
 
 def test_a_failed_report_leaves_the_existing_folder_as_it_was(tmp_path, monkeypatch):
-    from calibration.discrepancy import report
+    from tactile_deploy.calibration.discrepancy import report
 
     rep = tmp_path / "rep"
     rep.mkdir()
@@ -259,7 +259,7 @@ def test_a_failed_report_leaves_the_existing_folder_as_it_was(tmp_path, monkeypa
 # ----------------------------------------------------------------------- an end-to-end run
 def test_report_history_and_verdict_carry_the_real_folds_units_and_data(pad_sim, tmp_path,
                                                                         monkeypatch):
-    from calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
+    from tactile_deploy.calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
     from tactile_deploy.sensors.virtual import VirtualSensor
 
     monkeypatch.chdir(tmp_path)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from calibration.discrepancy.noise import noise_from_realisations
-from calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
-from calibration.discrepancy.workflow import (
+from tactile_deploy.calibration.discrepancy.noise import noise_from_realisations
+from tactile_deploy.calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
+from tactile_deploy.calibration.discrepancy.workflow import (
     DiscrepancyOptions,
     find_discrepancy,
     prepare_tables,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.fem_fit.fit import MatchedContact, estimate_pose, fit_fem_parameters
-from calibration.fem_fit.operator_bank import OperatorBank
+from tactile_deploy.calibration.fem_fit.fit import MatchedContact, estimate_pose, fit_fem_parameters
+from tactile_deploy.calibration.fem_fit.operator_bank import OperatorBank
 from tactile_deploy.camera.depth import DepthCamera
 from tactile_deploy.fem.material import Material
 from tactile_deploy.fem.simulator import ContactSimulator
@@ -38,7 +38,7 @@ def setup():
 
 
 def test_contacts_are_recovered_from_the_maps(setup):
-    from calibration.fem_fit.fit import _gap
+    from tactile_deploy.calibration.fem_fit.fit import _gap
 
     mesh, camera, contacts, poses, bank = setup
     for c, true in zip(contacts, poses):

@@ -1,6 +1,6 @@
 """Every file format's committed JSON Schema is its model's (one test per format; rewrite them
-with ``python -m tactile_deploy.formats``, ``python -m calibration.formats`` and
-``python -m training.formats``), and every model is on the one strict base."""
+with ``python -m tactile_deploy.formats``, ``python -m tactile_deploy.calibration.formats`` and
+``python -m tactile_deploy.training.formats``), and every model is on the one strict base."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from calibration.formats import FORMATS as CALIBRATION_FORMATS
+from tactile_deploy.calibration.formats import FORMATS as CALIBRATION_FORMATS
 from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.formats import FORMATS as RUNTIME_FORMATS
 
 pytest.importorskip("torch", reason="the training formats import training (train extra)")
-from training.formats import FORMATS as TRAINING_FORMATS  # noqa: E402
+from tactile_deploy.training.formats import FORMATS as TRAINING_FORMATS  # noqa: E402
 
 ALL = {**RUNTIME_FORMATS, **CALIBRATION_FORMATS, **TRAINING_FORMATS}
 
@@ -24,8 +24,8 @@ def test_committed_schema_is_the_models(name):
     fmt = ALL[name]
     assert fmt.schema_path.is_file(), f"{fmt.schema_path} is missing: run python -m <package>.formats"
     assert fmt.schema_path.read_text(encoding="utf-8") == fmt.schema_text(), (
-        f"{fmt.schema_path} is stale: run python -m tactile_deploy.formats / calibration.formats / "
-        "training.formats")
+        f"{fmt.schema_path} is stale: run python -m tactile_deploy.formats / tactile_deploy.calibration.formats / "
+        "tactile_deploy.training.formats")
 
 
 @pytest.mark.parametrize("name", sorted(ALL))

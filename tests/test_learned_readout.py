@@ -114,7 +114,7 @@ def test_readout_files_that_break_the_contract_are_named(tmp_path):
 
 
 def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
-    from training.shading_net.train import main
+    from tactile_deploy.training.shading_net.train import main
 
     out = tmp_path / "r.onnx"
     assert main(["--units", "1", "--presses", "6", "--epochs", "1", "--width", "4",
@@ -131,7 +131,7 @@ def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
 def test_depth_gain_recovers_a_planted_scale():
     """The unit's gain is the median of intrusion / deepest cell: a read-out that makes every
     press 7 % too shallow (and one outlier) gets 1 / 0.93 back; the rig's offset is added."""
-    from calibration.shading.readout_gain import readout_depth_gain
+    from tactile_deploy.calibration.shading.readout_gain import readout_depth_gain
 
     intrusion = np.array([0.3, 0.45, 0.6, 0.75, 0.9])
     offset = 0.03
@@ -192,7 +192,7 @@ def test_readout_reads_unseen_shapes_closer_than_the_shading_model(gelslim2_with
     read-out's training saw) of the virtual GelSlim 2, against the surface their frames were
     shaded from: the read-out's error over the contact and its rim is smaller than the shading
     model's of the same plugin."""
-    from calibration.shading.virtual_check import contact_region_errors, virtual_shape_presses
+    from tactile_deploy.calibration.shading.virtual_check import contact_region_errors, virtual_shape_presses
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.sensors import load_sensor
 
@@ -282,7 +282,7 @@ def test_finetuning_moves_a_network_to_a_planted_one(tmp_path):
 def test_finetuning_without_torch_says_what_to_install(monkeypatch):
     import sys
 
-    from calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
+    from tactile_deploy.calibration.shading.readout_finetune import FinetuneUnavailable, finetune_unit_readout
 
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(FinetuneUnavailable, match=r"tactile-deploy\[train\].*readout_steps to 0"):

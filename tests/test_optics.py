@@ -194,7 +194,7 @@ def test_model_validation_and_files(tmp_path):
 
 def _synthetic_presses(model: OpticsModel, n: int, ball_mm: float, sinking: float, seed: int):
     """Frames of a planted sensor: reference + n ball presses rendered by the fast renderer."""
-    from calibration.optics_fit import PressFrames, sphere_press_surface
+    from tactile_deploy.calibration.optics_fit import PressFrames, sphere_press_surface
     from tactile_deploy.imaging.camera_mapping import sensor_mm_to_pixels
 
     rng = np.random.default_rng(seed)
@@ -215,7 +215,7 @@ def _synthetic_presses(model: OpticsModel, n: int, ball_mm: float, sinking: floa
 
 def test_fit_recovers_planted_optics_parameters():
     """Done-criterion: fit a synthetic sensor with known parameters and recover them."""
-    from calibration.optics_fit import (
+    from tactile_deploy.calibration.optics_fit import (
         SurfaceParameters,
         fit_optics,
         parameter_paths,
@@ -271,7 +271,7 @@ def test_fit_recovers_planted_optics_parameters():
 def test_real_gelsight_presses_held_out_error(shared_data):
     """Fit on a few real presses; the held-out presses are predicted far better than by the
     reference frame alone (the figures of docs/optics.md come from the full fit)."""
-    from calibration.optics_fit import (
+    from tactile_deploy.calibration.optics_fit import (
         FOTS_BALL_RADIUS_MM,
         SurfaceParameters,
         fit_optics,
@@ -280,7 +280,7 @@ def test_real_gelsight_presses_held_out_error(shared_data):
         load_fots,
         press_samples,
     )
-    from calibration.optics_fit.fots import FOTS_FREE, _held_out_errors
+    from tactile_deploy.calibration.optics_fit.fots import FOTS_FREE, _held_out_errors
 
     press = load_fots(shared_data / "real" / "fots_gelsight_ballpress")
     assert press.frames.shape == (42, 320, 240, 3)

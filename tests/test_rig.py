@@ -18,7 +18,7 @@ import pytest
 import serial
 from typer.testing import CliRunner
 
-from calibration.rig import (
+from tactile_deploy.calibration.rig import (
     ForceGauge,
     GaugeError,
     GCodeStage,
@@ -37,8 +37,8 @@ from calibration.rig import (
     rig_config_from_dict,
     save_rig_config,
 )
-from calibration.rig.cli import EXIT_FORCE_LIMITED, rig_app
-from calibration.rig.simulated import HertzForce, SimulatedRig
+from tactile_deploy.calibration.rig.cli import EXIT_FORCE_LIMITED, rig_app
+from tactile_deploy.calibration.rig.simulated import HertzForce, SimulatedRig
 
 # The true placement of the virtual sensor: stage X runs against sensor x.
 FRAME = StageFrame(
@@ -150,7 +150,7 @@ def test_docs_example_config_is_valid():
 
 
 def test_configs_and_package_import_no_hardware_library():
-    code = "import sys, calibration.rig; assert 'serial' not in sys.modules, 'serial imported'"
+    code = "import sys, tactile_deploy.calibration.rig; assert 'serial' not in sys.modules, 'serial imported'"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
 

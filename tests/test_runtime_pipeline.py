@@ -35,8 +35,8 @@ FOLDS = 7
 @pytest.fixture(scope="module")
 def real(shared_data, tmp_path_factory):
     """A plugin of the real sensor built from 36 presses; the other 6 are held out."""
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import load_presses
+    from tactile_deploy.calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.presses import load_presses
 
     d = shared_data / "real" / "fots_gelsight_ballpress"
     if not (d / "annotate.csv").is_file():
@@ -74,7 +74,7 @@ def test_real_presses_reproduce_the_ball_within_the_calibration_tolerance(real):
     """Held-out presses through the plugin's pipeline: identical to the shading module, and
     shape error <= 20 um mean / 40 um worst, fitted ball radius within 5 % (the shading
     calibration's tolerance)."""
-    from calibration.shading.evaluate import press_result
+    from tactile_deploy.calibration.shading.evaluate import press_result
 
     presses, held, model, plugin = real
     pipe = ImagingPipeline.from_plugin(plugin)

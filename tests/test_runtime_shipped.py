@@ -74,7 +74,7 @@ def test_shipped_plugin_was_made_by_the_wizard_from_its_config(name):
     """The plugin's calibration report records the wizard run on the virtual sensor with the
     simulated rig and the committed config (rebuild with plugins/build_shipped.py after editing
     plugins/wizard/NAME.json); the model is the family's export, referenced, not copied."""
-    from calibration.wizard.config import load_wizard_config, wizard_config_from_dict
+    from tactile_deploy.calibration.wizard.config import load_wizard_config, wizard_config_from_dict
 
     folder = _folder(name)
     metrics = json.loads((folder / "calibration" / "metrics.json").read_text())

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.shading.colour_prior import ColourPolynomial
-from calibration.shading.fit import fit_table
+from tactile_deploy.calibration.shading.colour_prior import ColourPolynomial
+from tactile_deploy.calibration.shading.fit import fit_table
 
 BINS = 16
 SHAPE = (60, 90)           # (H, W) px
@@ -107,8 +107,8 @@ def test_table_falls_back_to_the_place_not_the_image_mean(sparse_bins):
 
 def test_unknown_fallback_is_refused():
     """A misspelt fallback names the setting and the accepted values."""
-    from calibration.shading.fit import ShadingFitConfig, fit_shading
-    from calibration.shading.presses import PressSet
+    from tactile_deploy.calibration.shading.fit import ShadingFitConfig, fit_shading
+    from tactile_deploy.calibration.shading.presses import PressSet
 
     rng = np.random.default_rng(6)
     ref = rng.integers(90, 160, (40, 50, 3)).astype(np.uint8)

@@ -12,10 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from calibration.shading.evaluate import depth_errors
-from calibration.shading.fit import fit_shading
-from calibration.shading.presses import PressSet
-from calibration.shading.press_profile import PressProfile
+from tactile_deploy.calibration.shading.evaluate import depth_errors
+from tactile_deploy.calibration.shading.fit import fit_shading
+from tactile_deploy.calibration.shading.presses import PressSet
+from tactile_deploy.calibration.shading.press_profile import PressProfile
 from tactile_deploy.imaging.shading import DepthFromShading
 
 from tests.test_shading_real import SYN_BALL_MM, SYN_MM_PER_PX, SYN_SHAPE, render_lambertian
@@ -87,7 +87,7 @@ def test_profile_subset_and_count_checks(sunken):
     train = sunken[0]
     sub = train.subset([0, 2])
     assert sub.profiles == [train.profiles[0], train.profiles[2]]
-    from calibration.shading.presses import PressDataError
+    from tactile_deploy.calibration.shading.presses import PressDataError
 
     with pytest.raises(PressDataError, match="1 profiles for 24 frames"):
         PressSet(train.reference, train.frames, train.names, train.circles, train.profiles[:1])
@@ -109,7 +109,7 @@ def test_fem_ball_press_profile():
     """The FEM profile of a 3 mm ball on the GelSlim pad: the sphere inside the contact, the
     nodal FEM depths outside it (azimuthal symmetry about the pad's centre), a bulge of the
     nearly incompressible gel further out, and the depth found again from the contact radius."""
-    from calibration.shading.press_profile import BallPressModel
+    from tactile_deploy.calibration.shading.press_profile import BallPressModel
 
     model = BallPressModel("gelslim", 3.0, 0.48)
     prof = model.profile(0.0, 0.0, 0.6, 6.0)

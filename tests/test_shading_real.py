@@ -13,22 +13,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.shading.baselines import fit_rgb_table
-from calibration.shading.circles import (
+from tactile_deploy.calibration.shading.baselines import fit_rgb_table
+from tactile_deploy.calibration.shading.circles import (
     ContactNotFoundError,
     contact_radius_from_gradients,
     detect_contact_circle,
 )
-from calibration.shading.compare import METHOD_NAMES, compare_methods
-from calibration.shading.evaluate import depth_errors, fit_sphere, markdown_table
-from calibration.shading.fit import fit_shading
-from calibration.shading.presses import (
+from tactile_deploy.calibration.shading.compare import METHOD_NAMES, compare_methods
+from tactile_deploy.calibration.shading.evaluate import depth_errors, fit_sphere, markdown_table
+from tactile_deploy.calibration.shading.fit import fit_shading
+from tactile_deploy.calibration.shading.presses import (
     PressDataError,
     PressSet,
     load_presses,
     read_annotations,
 )
-from calibration.shading.targets import sphere_cap_depth_mm, sphere_gradients
+from tactile_deploy.calibration.shading.targets import sphere_cap_depth_mm, sphere_gradients
 from tactile_deploy.imaging.shading import (
     DepthFromShading,
     ShadingModelError,
@@ -331,7 +331,7 @@ def test_annotation_errors(tmp_path):
 def test_runtime_imports_without_torch_or_warp():
     code = ("import sys; sys.modules['torch'] = None; sys.modules['warp'] = None; "
             "import tactile_deploy.imaging.shading, tactile_deploy.imaging.poisson; "
-            "import calibration.shading.fit, calibration.shading.cli; print('ok')")
+            "import tactile_deploy.calibration.shading.fit, tactile_deploy.calibration.shading.cli; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=False)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
@@ -343,7 +343,7 @@ def test_command_line(tmp_path, synthetic):
     import typer
     from typer.testing import CliRunner
 
-    from calibration.shading.cli import depth_command, shading_app
+    from tactile_deploy.calibration.shading.cli import depth_command, shading_app
 
     train, frames, depths, _ = synthetic
     presses = tmp_path / "presses"

@@ -174,7 +174,7 @@ def test_single_contact_npz_describes_itself(tmp_path, pad_sim):
 
 def test_shards_describe_themselves_and_keep_their_arrays(tmp_path, pad_sim):
     from tactile_deploy.simulation.dataset import load_dataset
-    from training.data import load_dataset_dir
+    from tactile_deploy.training.data import load_dataset_dir
 
     out = tmp_path / "ds"
     assert run(*BATCH, "--seed", 2, "--out", out).exit_code == 0

@@ -1,4 +1,4 @@
-"""``python -m training`` and ``python -m training.shading_net`` on user mistakes: one clean
+"""``python -m tactile_deploy.training`` and ``python -m tactile_deploy.training.shading_net`` on user mistakes: one clean
 ``error: ...`` message and exit status 2, checked before any work; a run folder resumed only with
 the settings it was trained with; caches reused only for the data they hold; exports that replace
 files only with --overwrite and never half; Ctrl-C during training ends with a note and status 130.
@@ -21,8 +21,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from training.__main__ import main
-from training.errors import UsageError, run_command
+from tactile_deploy.training.__main__ import main
+from tactile_deploy.training.errors import UsageError, run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = {"epochs": 1, "batch_size": 8, "lr": 2e-3, "kl_weight": 1e-5}
@@ -138,12 +138,12 @@ def test_export_help_says_the_default_out_is_relative_to_the_current_folder(caps
 
 
 def test_evaluate_checks_model_and_out_before_simulating(tmp_path, capsys, monkeypatch):
-    import training.evaluation
+    import tactile_deploy.training.evaluation
 
     def never(*args, **kwargs):
         raise AssertionError("simulated before checking the options")
 
-    monkeypatch.setattr(training.evaluation, "run_evaluation", never)
+    monkeypatch.setattr(tactile_deploy.training.evaluation, "run_evaluation", never)
     good_out = tmp_path / "report.json"
     err = _error(capsys, ["evaluate", "--model", tmp_path / "none.onnx", "--out", good_out, "--domains", "primitives"])
     assert "--model" in err and "no such file" in err
@@ -160,8 +160,8 @@ def test_evaluate_checks_model_and_out_before_simulating(tmp_path, capsys, monke
 # ------------------------------------------------------------------------------- data caches
 def test_data_cache_of_other_settings_is_refused(tmp_path):
     from tactile_deploy.atomic import write_npz
-    from training.config import DataConfig
-    from training.data import cache_spec, check_data, load
+    from tactile_deploy.training.config import DataConfig
+    from tactile_deploy.training.data import cache_spec, check_data, load
 
     cache = tmp_path / "data.npz"
     cfg = DataConfig.model_validate({"synthetic": SYNTHETIC, "cache_file": str(cache)})
@@ -186,8 +186,8 @@ def test_data_cache_of_other_settings_is_refused(tmp_path):
 
 # ---------------------------------------------------------------------------- int8 calibration
 def test_int8_calibration_never_falls_back_to_heldout_maps(tmp_path):
-    from training.config import TrainConfig
-    from training.export import calibration_maps
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.export import calibration_maps
 
     cfg = TrainConfig.model_validate({"run_dir": "x", "data": {"dataset_dir": str(tmp_path / "moved")}})
     with pytest.raises(UsageError, match=r"data.dataset_dir .*moved.*cannot be read.*--variant lean-fastood"):
@@ -201,7 +201,7 @@ def test_int8_calibration_never_falls_back_to_heldout_maps(tmp_path):
 
 # ------------------------------------------------------------------------------- shading_net
 def _shading(argv):
-    from training.shading_net.train import main as shading_main
+    from tactile_deploy.training.shading_net.train import main as shading_main
 
     return shading_main([str(a) for a in argv])
 
@@ -238,10 +238,10 @@ def test_shading_net_data_cache_must_match_the_options(tmp_path, capsys):
 
 def test_shading_net_command_line(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    res = subprocess.run([sys.executable, "-m", "training.shading_net", "--units", "0", "--out", str(tmp_path / "r.onnx")],
+    res = subprocess.run([sys.executable, "-m", "tactile_deploy.training.shading_net", "--units", "0", "--out", str(tmp_path / "r.onnx")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120, check=False)
     assert res.returncode == 2 and res.stderr.strip() == "error: --units must be >= 1, got 0", res.stderr
-    res = subprocess.run([sys.executable, "-m", "training.shading_net", "--help"], capture_output=True, text=True,
+    res = subprocess.run([sys.executable, "-m", "tactile_deploy.training.shading_net", "--help"], capture_output=True, text=True,
                          env=env, cwd=tmp_path, timeout=120, check=False)
     text = " ".join(res.stdout.split())
     assert "virtual units of the design (default: 8)" in text and "(default: 1000)" in text
@@ -252,8 +252,8 @@ def test_shading_net_command_line(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """A trained tiny run (one epoch per stage) and its config file."""
-    from training.config import TrainConfig
-    from training.train import train
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.train import train
 
     root = tmp_path_factory.mktemp("tiny")
     cfg = tiny_config(root / "run", root / "data.npz")
@@ -293,7 +293,7 @@ def test_resume_with_other_settings_is_refused(tiny_run, tmp_path, capsys, chang
 
 
 def test_resume_may_change_threads_and_evaluation(tiny_run, tmp_path, capsys):
-    from training.config import TrainConfig
+    from tactile_deploy.training.config import TrainConfig
 
     root, _, cfg = tiny_run
     cfg = {**cfg, "threads": 2, "eval_max_samples": 3, "data": {**cfg["data"], "cache_file": str(root / "data.npz")}}
@@ -314,7 +314,7 @@ def test_ctrl_c_during_training_then_resume(tiny_run, tmp_path, capsys):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     # as from a terminal: SIGINT handled by default even when this test runner was started with it
     # ignored (a background job), which the child would otherwise inherit
-    proc = subprocess.Popen([sys.executable, "-m", "training", "train", "--config", str(path)], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "tactile_deploy.training", "train", "--config", str(path)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
@@ -344,14 +344,14 @@ def test_ctrl_c_during_training_then_resume(tiny_run, tmp_path, capsys):
 
 
 def test_export_prints_both_graphs_and_replaces_the_set_only_whole(tiny_run, tmp_path, capsys, monkeypatch):
-    import training.card
-    import training.export
+    import tactile_deploy.training.card
+    import tactile_deploy.training.export
 
     root, _, _ = tiny_run
     run = root / "run"
     with np.load(run / "heldout.npz") as held:  # fast stand-ins for the simulated calibration maps
         calib = held["depth_mm"][:, None].astype(np.float32) * 0.9
-    monkeypatch.setattr(training.export, "calibration_maps",
+    monkeypatch.setattr(tactile_deploy.training.export, "calibration_maps",
                         lambda cfg, n=256, heldout_seed=None: (calib, {"source": "test maps", "n_maps": len(calib)}))
     out = tmp_path / "m.onnx"
     assert main(["export", "--run", str(run), "--out", str(out)]) == 0
@@ -370,7 +370,7 @@ def test_export_prints_both_graphs_and_replaces_the_set_only_whole(tiny_run, tmp
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(training.card, "write_card", interrupted)
+    monkeypatch.setattr(tactile_deploy.training.card, "write_card", interrupted)
     assert main(["export", "--run", str(run), "--out", str(out), "--variant", "lean-fastood", "--overwrite"]) == 130
     assert _files(tmp_path) == before  # the old set, whole; no temporary file left
 

@@ -9,8 +9,8 @@ import scipy.sparse as sp
 
 torch = pytest.importorskip("torch")
 
-from training.networks.coarsening import build_hierarchy  # noqa: E402
-from training.networks.graph import ChebConv, SparseMap  # noqa: E402
+from tactile_deploy.training.networks.coarsening import build_hierarchy  # noqa: E402
+from tactile_deploy.training.networks.graph import ChebConv, SparseMap  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +106,7 @@ def test_chebconv_matches_dense_polynomial(hierarchy, c_in, c_out, k):
 
 
 def test_layered_blocks_reproduce_the_operator(hierarchy):
-    from training.fused import layered_blocks
+    from tactile_deploy.training.fused import layered_blocks
 
     lv = hierarchy.levels[0]
     op = lv.chebyshev_operator.matrix()

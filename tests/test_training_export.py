@@ -8,13 +8,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from training.config import DataConfig, SyntheticData, TrainConfig  # noqa: E402
-from training.export import PixelShuffleUp, deploy_module, rewrite_transposed_convs  # noqa: E402
+from tactile_deploy.training.config import DataConfig, SyntheticData, TrainConfig  # noqa: E402
+from tactile_deploy.training.export import PixelShuffleUp, deploy_module, rewrite_transposed_convs  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def model():
-    from training.train import build_model
+    from tactile_deploy.training.train import build_model
 
     torch.manual_seed(1)
     m = build_model(TrainConfig(run_dir="unused", data=DataConfig(synthetic=SyntheticData(n_samples=1)))).eval()

@@ -10,12 +10,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from training.config import GridDecoderConfig, ImageVAEConfig, MeshVAEConfig, TrainConfig  # noqa: E402
-from training.data import contact_ids, split_by_contact  # noqa: E402
-from training.networks.coarsening import build_hierarchy  # noqa: E402
-from training.networks.grid_decoder import GridDecoder  # noqa: E402
-from training.networks.image_vae import ImageVAE  # noqa: E402
-from training.networks.mesh_vae import MeshVAE  # noqa: E402
+from tactile_deploy.training.config import GridDecoderConfig, ImageVAEConfig, MeshVAEConfig, TrainConfig  # noqa: E402
+from tactile_deploy.training.data import contact_ids, split_by_contact  # noqa: E402
+from tactile_deploy.training.networks.coarsening import build_hierarchy  # noqa: E402
+from tactile_deploy.training.networks.grid_decoder import GridDecoder  # noqa: E402
+from tactile_deploy.training.networks.image_vae import ImageVAE  # noqa: E402
+from tactile_deploy.training.networks.mesh_vae import MeshVAE  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_mesh_vae_shapes_and_paper_sizes(hierarchy):
 
 def test_fused_decoder_is_the_same_function(hierarchy):
     """Restructured (folded, dense coarse levels, layered fine levels) = the training decoder."""
-    from training.fused import FusedComaDecoder
+    from tactile_deploy.training.fused import FusedComaDecoder
 
     torch.manual_seed(0)
     vae = MeshVAE(MeshVAEConfig(), hierarchy)
@@ -111,7 +111,7 @@ def test_configs_refuse_inconsistent_input():
 
 def test_shipped_configs_load():
     """Every config shipped in training/configs validates against the schema it is read with."""
-    from training.experiments import ExperimentConfig
+    from tactile_deploy.training.experiments import ExperimentConfig
 
     root = Path(__file__).resolve().parents[1] / "training" / "configs"
     files = sorted(root.glob("*.json"))

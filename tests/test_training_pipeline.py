@@ -14,10 +14,10 @@ pytest.importorskip("onnxscript")
 
 def test_train_export_parity(tmp_path, pad):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
-    from training.config import TrainConfig
+    from tactile_deploy.training.config import TrainConfig
     from tactile_deploy.onnx_runtime.session import make_session
-    from training.export import export_run, run_session
-    from training.train import load_bundle, train
+    from tactile_deploy.training.export import export_run, run_session
+    from tactile_deploy.training.train import load_bundle, train
 
     stage = {"epochs": 3, "batch_size": 16, "lr": 2e-3, "kl_weight": 1e-5}
     cfg = TrainConfig.model_validate({
@@ -104,7 +104,7 @@ def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
     import subprocess
     import sys
 
-    from training.train import load_bundle
+    from tactile_deploy.training.train import load_bundle
 
     stage = {"epochs": 2, "batch_size": 8, "lr": 2e-3, "kl_weight": 1e-5}
     cfg = {
@@ -131,7 +131,7 @@ def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
         port = s.getsockname()[1]
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(port),
-         "-m", "training", "train", "--config", str(path)],
+         "-m", "tactile_deploy.training", "train", "--config", str(path)],
         capture_output=True, text=True, timeout=600, env=env,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from calibration.virtual_recordings import record_ball_presses, record_target_frames
+from tactile_deploy.calibration.virtual_recordings import record_ball_presses, record_target_frames
 from tactile_deploy.indenters import AnalyticSphere, ContactPose
 from tactile_deploy.sensors import (
     SensorConfigError,
@@ -160,7 +160,7 @@ def test_frame_source_timing_and_lifecycle(pad_sim):
 
 
 def test_recorded_ball_presses_read_back_and_circles_match_the_images(gelslim1, tmp_path):
-    from calibration.optics_fit import load_fots
+    from tactile_deploy.calibration.optics_fit import load_fots
 
     rec = record_ball_presses(gelslim1, 3, radius_mm=2.5, depth_range_mm=(0.4, 0.8), seed=1)
     assert rec.frames.shape == (3, 480, 640, 3)
@@ -216,7 +216,7 @@ def test_dot_detection_finds_the_pins_apexes_and_the_true_camera(gelslim2, depth
     strong lens): the detected dot centres against the pins' true pixels (the sensor's own
     camera mapping), and the mapping fitted from them against that camera over the imaging grid.
     The blobs' centroids are the check's teeth: pulled towards the lit flank, they miss by px."""
-    from calibration.camera.dots import calibrate_dots, detect_dots
+    from tactile_deploy.calibration.camera.dots import calibrate_dots, detect_dots
     from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
     from tactile_deploy.imaging.camera_mapping import build_remap
     from tactile_deploy.indenters import ContactPose

@@ -1,9 +1,9 @@
-"""Per-pixel weighted depth integration (calibration.shading.weighted_poisson)."""
+"""Per-pixel weighted depth integration (tactile_deploy.calibration.shading.weighted_poisson)."""
 
 import numpy as np
 import pytest
 
-from calibration.shading.weighted_poisson import integrate_weighted
+from tactile_deploy.calibration.shading.weighted_poisson import integrate_weighted
 from tactile_deploy.imaging.poisson import poisson_solver
 
 

@@ -178,7 +178,7 @@ def test_redo_resume_and_config_checks(wizard_copy):
     """--redo reruns from a step (the plugin it wrote is replaced without --overwrite); a
     finished calibration says so; another config needs --redo or --restart; bad input names
     the file and field."""
-    from calibration.wizard.state import WorkFolder
+    from tactile_deploy.calibration.wizard.state import WorkFolder
 
     folder, out, cfg, _ = wizard_copy
     work = WorkFolder(folder / "acme.calibration")
@@ -243,7 +243,7 @@ def test_interactive_wizard_through_a_pty(tmp_path):
     hand, an interruption (Ctrl-C) after the shading step, and a resume that finishes."""
     import pexpect
 
-    from calibration.wizard.state import WorkFolder
+    from tactile_deploy.calibration.wizard.state import WorkFolder
     from tactile_deploy.runtime.plugins import validate_plugin
 
     cfg = tmp_path / "cfg.json"       # fewer frames and presses: the dialogue is under test
@@ -353,8 +353,8 @@ def test_wizard_drives_a_rig_on_serial_ports_with_recorded_frames(tmp_path, sens
     on two pseudo-terminals (as `tactile-deploy rig simulate` would); the frames come from a clip
     recorded beforehand at the contacts the wizard will command (the crop target: frames taken as
     rectified). The stage is driven to every planned contact, the gauge's forces are recorded."""
-    from calibration.rig.simulated import HertzForce, SimulatedRig
-    from calibration.wizard.steps.presses import plan_presses
+    from tactile_deploy.calibration.rig.simulated import HertzForce, SimulatedRig
+    from tactile_deploy.calibration.wizard.steps.presses import plan_presses
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.runtime.plugins import validate_plugin
     from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
@@ -418,7 +418,7 @@ def test_plugin_step_with_the_learned_readout(wizard_copy):
     flat = pipe.frame_to_depth(sensor.renderer.reference_frame(np.random.default_rng(9)))
     assert np.abs(flat).max() < 0.02, np.abs(flat).max()
     # new presses the wizard never saw, against the surface their frames were shaded from
-    from calibration.shading.virtual_check import (
+    from tactile_deploy.calibration.shading.virtual_check import (
         near_contact_errors,
         virtual_ball_presses,
     )
@@ -438,7 +438,7 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
     the design's network as it is: docs/shading.md says why; the wizard's default is 0 steps.)"""
     import hashlib
 
-    from calibration.shading.virtual_check import (
+    from tactile_deploy.calibration.shading.virtual_check import (
         near_contact_errors,
         virtual_ball_presses,
     )
@@ -470,8 +470,8 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
     design = ImagingPipeline(m.camera, plugin.shading_model, plugin.reference_frame,
                              readout=LearnedReadout(base))
     # its own targets: the rig presses' FEM depth maps, as the wizard drew them
-    from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.press_data import press_profiles
+    from tactile_deploy.calibration.wizard.config import wizard_config_from_dict
+    from tactile_deploy.calibration.wizard.press_data import press_profiles
 
     work = out.parent / f"{out.name}.calibration"
     with np.load(work / "presses.npz") as z:

@@ -1,17 +1,17 @@
-"""Command line: ``python -m training {train,export} ...``.
+"""Command line: ``python -m tactile_deploy.training {train,export} ...``.
 
-    python -m training train --config runs/small.json [--device cuda]
-    torchrun --nproc_per_node 8 -m training train --config runs/big.json --device cuda
-    python -m training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
-    python -m training report-coarsening --data DATA.npz [--png FIGURE.png]
-    python -m training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
-    python -m training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
-    python -m training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
-    python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
-    python -m training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
+    python -m tactile_deploy.training train --config runs/small.json [--device cuda]
+    torchrun --nproc_per_node 8 -m tactile_deploy.training train --config runs/big.json --device cuda
+    python -m tactile_deploy.training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
+    python -m tactile_deploy.training report-coarsening --data DATA.npz [--png FIGURE.png]
+    python -m tactile_deploy.training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
+    python -m tactile_deploy.training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
+    python -m tactile_deploy.training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
+    python -m tactile_deploy.training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json [--n 256]
+    python -m tactile_deploy.training experiments --config training/configs/experiments_h100.json --out out/experiments [--only latent,kl,scratch]
 
 A mistake in a config, option or input file ends the command with one ``error: ...`` message and
-exit status 2 (:mod:`training.errors`); nothing is written then.
+exit status 2 (:mod:`tactile_deploy.training.errors`); nothing is written then.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from training.errors import UsageError, run_command
+from tactile_deploy.training.errors import UsageError, run_command
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,17 +44,17 @@ def _run_folder(path: str, option: str = "--run") -> Path:
     if not run.is_dir():
         raise UsageError(f"{option} {run}: no such folder; give the run_dir of a training run")
     if not (run / "config.json").is_file():
-        raise UsageError(f"{option} {run} holds no config.json: not a training run folder (python -m training train "
+        raise UsageError(f"{option} {run} holds no config.json: not a training run folder (python -m tactile_deploy.training train "
                          "--config CONFIG.json makes one)")
     return run
 
 
 def _main(argv: list[str]) -> int:
     if argv[:1] == ["export-adapt"]:
-        from training.adaptation.export import main as export_adapt
+        from tactile_deploy.training.adaptation.export import main as export_adapt
 
         return export_adapt(argv[1:])
-    parser = argparse.ArgumentParser(prog="python -m training", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tactile_deploy.training", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_train = sub.add_parser("train", help="pre-train both VAEs, then the latent projection")
     p_train.add_argument("--config", required=True, help="TrainConfig JSON file")
@@ -101,7 +101,7 @@ def _main(argv: list[str]) -> int:
 
     if args.command == "evaluate":
         from tactile_deploy.atomic import write_json
-        from training.evaluation import DOMAINS, run_evaluation
+        from tactile_deploy.training.evaluation import DOMAINS, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
         unknown = [d for d in domains if d not in DOMAINS]
@@ -115,7 +115,7 @@ def _main(argv: list[str]) -> int:
         out = _check_output_json(args.out, "--out")
         model = Path(args.model)
         if not model.is_file():
-            raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m training export)")
+            raise UsageError(f"--model {model}: no such file; give an exported ONNX model (python -m tactile_deploy.training export)")
         from tactile_deploy.runtime.predictor import MeshPredictor, ModelContractError
 
         try:
@@ -131,8 +131,8 @@ def _main(argv: list[str]) -> int:
         import numpy as np
 
         from tactile_deploy.atomic import write_npz
-        from training.config import TrainConfig
-        from training.data import fresh_contacts
+        from tactile_deploy.training.config import TrainConfig
+        from tactile_deploy.training.data import fresh_contacts
 
         run = _run_folder(args.run)
         cfg = TrainConfig.load(run / "config.json")
@@ -150,13 +150,13 @@ def _main(argv: list[str]) -> int:
         return 0
 
     if args.command == "experiments":
-        from training.experiments import ExperimentConfig, run_experiments
+        from tactile_deploy.training.experiments import ExperimentConfig, run_experiments
 
         run_experiments(ExperimentConfig.load(args.config), args.out, tuple(args.only.split(",")))
         return 0
 
     if args.command == "envelope-bank":
-        from training.simulation.batched import EnvelopeBank
+        from tactile_deploy.training.simulation.batched import EnvelopeBank
         from tactile_deploy.indenters import get_indenter, list_indenters
 
         names = list_indenters("primitive") if args.indenters == "primitive" else args.indenters.split(",")
@@ -167,7 +167,7 @@ def _main(argv: list[str]) -> int:
     if args.command == "report-coarsening":
         import numpy as np
 
-        from training.reports import coarsening_figure, coarsening_table, markdown_table, pick_contacts
+        from tactile_deploy.training.reports import coarsening_figure, coarsening_table, markdown_table, pick_contacts
 
         with np.load(args.data) as d:
             disp = d["displacement_mm"][: args.n]
@@ -177,7 +177,7 @@ def _main(argv: list[str]) -> int:
         return 0
 
     if args.command == "train":
-        from training.config import TrainConfig, check_device
+        from tactile_deploy.training.config import TrainConfig, check_device
 
         cfg = TrainConfig.load(args.config)
         if args.device:
@@ -186,7 +186,7 @@ def _main(argv: list[str]) -> int:
             except ValueError as e:
                 raise UsageError(f"--device: {e}") from None
             cfg = cfg.model_copy(update={"device": args.device})
-        from training.train import train
+        from tactile_deploy.training.train import train
 
         try:
             train(cfg)
@@ -196,7 +196,7 @@ def _main(argv: list[str]) -> int:
             print("interrupted; rerun the same command to resume", file=sys.stderr)
             return 130
         return 0
-    from training.export import SHIPPED_VARIANT, check_export, export_run
+    from tactile_deploy.training.export import SHIPPED_VARIANT, check_export, export_run
 
     variant = args.variant or SHIPPED_VARIANT
     out = Path(args.out)

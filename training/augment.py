@@ -2,7 +2,7 @@
 
 The paper ("Image Augmentations") adds Perlin noise and a real sensor's noise reference image to
 the synthetic depth maps. The virtual GelSlim sensors show what else separates a plugin's depth
-map from the simulator's (``python -m training.adaptation.domain_gap``, docs/adaptation.md):
+map from the simulator's (``python -m tactile_deploy.training.adaptation.domain_gap``, docs/adaptation.md):
 shading and integration blur the contact (Gaussian sigma 0.1-0.7 mm), scale its depth (gain
 0.57-1.31), leave a negative halo around it (down to -0.1 to -0.4 mm) and a low-frequency drift
 (RMS 2-30 um), and the camera sees only part of the pad (depth 0 outside its view). Data flow of
@@ -32,7 +32,7 @@ import math
 import numpy as np
 import torch
 
-from training.config import AugmentationConfig
+from tactile_deploy.training.config import AugmentationConfig
 
 #: Perlin maps computed once per :class:`Augmenter`, PERLIN_MARGIN pixels larger than the map
 #: (crops at random offsets).

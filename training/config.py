@@ -1,6 +1,6 @@
 """Run configuration of the image-to-mesh predictor (one JSON file per run).
 
-``python -m training train --config CONFIG.json``: the file is a :class:`TrainConfig`. Every model
+``python -m tactile_deploy.training train --config CONFIG.json``: the file is a :class:`TrainConfig`. Every model
 here is strict (unknown keys and NaN/inf refused); field descriptions are the documentation.
 Lengths in mm.
 """
@@ -14,7 +14,7 @@ from typing import Literal
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from tactile_deploy.fileformat import StrictModel
-from training.errors import UsageError
+from tactile_deploy.training.errors import UsageError
 
 FORMAT_VERSION = 1
 DEVICE_PATTERN = re.compile(r"cpu|cuda|cuda:\d+|auto")
@@ -73,7 +73,7 @@ class ProjectionConfig(StrictModel):
 
 
 class GridDecoderConfig(StrictModel):
-    """The lean deployment decoder (:mod:`training.networks.grid_decoder`)."""
+    """The lean deployment decoder (:mod:`tactile_deploy.training.networks.grid_decoder`)."""
 
     grid: int = Field(64, description="Pixels per side of the in-plane grid (a power of two >= 8).")
     channels: tuple[int, ...] = Field((64, 64, 32, 32), description="Channels at 4x4, 8x8, ... grid/2.")
@@ -160,9 +160,9 @@ class StageConfig(StrictModel):
 
 
 class AugmentationConfig(StrictModel):
-    """Augmentation of the simulated depth maps (:mod:`training.augment`); ranges are (low, high)
+    """Augmentation of the simulated depth maps (:mod:`tactile_deploy.training.augment`); ranges are (low, high)
     of uniform draws per map. Defaults: the ranges measured on the virtual GelSlim sensors
-    (``python -m training.adaptation.domain_gap``, docs/adaptation.md)."""
+    (``python -m tactile_deploy.training.adaptation.domain_gap``, docs/adaptation.md)."""
 
     probability: float = Field(0.8, ge=0, le=1, description="Share of maps augmented (the rest pass clean).")
     blur_sigma_mm: tuple[float, float] = Field((0.0, 0.7), description="Gaussian blur sigma, mm.")

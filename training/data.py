@@ -1,6 +1,6 @@
 """Training data: simulated depth maps and pad displacements, the split by contact, the scales.
 
-Sources (:class:`training.config.DataConfig`):
+Sources (:class:`tactile_deploy.training.config.DataConfig`):
 
 * a simulated dataset folder (``tactile-deploy simulate``; :mod:`tactile_deploy.simulation.dataset`):
   shards with ``depth`` (S, 128, 128) float32 mm pushed in and ``displacement`` (S, n, 3) float32 mm,
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from training.config import DataConfig, SyntheticData
-from training.errors import UsageError
+from tactile_deploy.training.config import DataConfig, SyntheticData
+from tactile_deploy.training.errors import UsageError
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     """
     import torch
 
-    from training.simulation.batched import BatchedContactSimulator, EnvelopeBank
+    from tactile_deploy.training.simulation.batched import BatchedContactSimulator, EnvelopeBank
     from tactile_deploy.fem.material import Material
     from tactile_deploy.indenters import get_indenter
     from tactile_deploy.pad.asset import load_pad

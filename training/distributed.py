@@ -1,6 +1,6 @@
 """Device choice and data-parallel plumbing (torchrun / DDP), inert in a single process.
 
-Under ``torchrun --nproc_per_node G -m training train --config C.json`` every rank reads RANK,
+Under ``torchrun --nproc_per_node G -m tactile_deploy.training train --config C.json`` every rank reads RANK,
 WORLD_SIZE and LOCAL_RANK, makes or reads its own data shard, and trains a DDP-wrapped copy;
 rank 0 alone writes files. In a plain process everything here is a no-op.
 """
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from training.errors import UsageError
+from tactile_deploy.training.errors import UsageError
 
 
 @dataclass(frozen=True)

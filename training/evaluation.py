@@ -1,6 +1,6 @@
 """Evaluation report of the exported predictor against the physics baseline, domain by domain.
 
-``python -m training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json``
+``python -m tactile_deploy.training evaluate --model exported/gelslim_mesh.onnx --out docs/results/evaluation.json``
 
 Domains (fresh contacts simulated on the CPU, never seen in training; poses drawn as in training:
 uniform in a disc of radius 12 mm, theta uniform, depth 0.2-1.2 mm):

@@ -1,6 +1,6 @@
 """The paper's questions at our scale: latent sizes, KL weights, pre-training vs training from scratch.
 
-``python -m training experiments --config CONFIG.json --out DIR [--only latent,kl,scratch]``
+``python -m tactile_deploy.training experiments --config CONFIG.json --out DIR [--only latent,kl,scratch]``
 
 Every experiment trains on the same data (``base.data``: generated once, split by contact) with
 the same stage settings, and reports the held-out vertex error of the image -> mesh path:
@@ -34,11 +34,11 @@ import torch
 from pydantic import Field
 
 from tactile_deploy.fileformat import StrictModel
-from training import distributed
-from training.config import StageConfig, TrainConfig
-from training.networks.coarsening import build_hierarchy
-from training.networks.predictor import Predictor
-from training.train import (
+from tactile_deploy.training import distributed
+from tactile_deploy.training.config import StageConfig, TrainConfig
+from tactile_deploy.training.networks.coarsening import build_hierarchy
+from tactile_deploy.training.networks.predictor import Predictor
+from tactile_deploy.training.train import (
     _freeze,
     _Tensors,
     encode_latents,

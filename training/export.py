@@ -16,8 +16,8 @@ mean latent. The metadata's ``ood_threshold`` is the 99th percentile of that sco
 Variants (``VARIANTS``):
 
 * ``naive``: the training modules as they are (COMA decoder, Chebyshev recursions as Gather tables);
-* ``fused``: the same function restructured (:mod:`training.fused`), exact to float rounding;
-* ``lean``: image encoder + projection + the lean grid decoder (:mod:`training.networks.grid_decoder`);
+* ``fused``: the same function restructured (:mod:`tactile_deploy.training.fused`), exact to float rounding;
+* ``lean``: image encoder + projection + the lean grid decoder (:mod:`tactile_deploy.training.networks.grid_decoder`);
 * ``*-fastood``: ``ood_score`` from the lean image decoder (:class:`LeanImageDecoder`, trained on
   the frozen image encoder) instead of the symmetric VAE decoder, which is half of the lean graph's
   time; the metadata's ``ood_threshold`` is then that decoder's held-out p99;
@@ -44,8 +44,8 @@ from tactile_deploy.onnx_runtime.contract import mesh_model_metadata
 from tactile_deploy.onnx_runtime.metadata import write_metadata
 from tactile_deploy.onnx_runtime.quantize import quantize_int8
 from tactile_deploy.onnx_runtime.session import make_session
-from training.errors import UsageError
-from training.networks.predictor import Predictor
+from tactile_deploy.training.errors import UsageError
+from tactile_deploy.training.networks.predictor import Predictor
 
 VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood")
 #: The variant written to the shipped file (best accuracy/speed pair, see bench/bench_predictor.py).
@@ -161,7 +161,7 @@ def deploy_module(model: Predictor, variant: str) -> DeployGraph:
         dec.graphs.set_use_tables(True)
         return DeployGraph(model, dec, scale_mask, ood).eval()
     if base == "fused":
-        from training.fused import FusedComaDecoder
+        from tactile_deploy.training.fused import FusedComaDecoder
 
         return DeployGraph(model, FusedComaDecoder(model.mesh_vae.decoder), scale_mask, ood).eval()
     if base == "lean":
@@ -300,7 +300,7 @@ def check_export(run_dir: str | Path, out: str | Path, variant: str, overwrite: 
         raise UsageError(f"--run {run_dir}: no such folder; give the run_dir of a training run")
     for name in ("model.pt", "heldout.npz"):
         if not (run_dir / name).is_file():
-            raise UsageError(f"--run {run_dir} holds no {name}: give a finished training run (python -m training "
+            raise UsageError(f"--run {run_dir} holds no {name}: give a finished training run (python -m tactile_deploy.training "
                              "train --config CONFIG.json writes both)")
     if out.suffix != ".onnx" or out.name.startswith("-"):
         raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
@@ -317,7 +317,7 @@ def check_export(run_dir: str | Path, out: str | Path, variant: str, overwrite: 
 
 
 def heldout_seed(held) -> int | None:
-    """The generator seed of a run's heldout.npz written by ``python -m training heldout`` (None:
+    """The generator seed of a run's heldout.npz written by ``python -m tactile_deploy.training heldout`` (None:
     the held-out split of the training data)."""
     if "seed" in held:
         return int(held["seed"])
@@ -342,8 +342,8 @@ def export_run(
     leaves the previous set as it was."""
     import os
 
-    from training.card import build_card, write_card
-    from training.train import load_bundle
+    from tactile_deploy.training.card import build_card, write_card
+    from tactile_deploy.training.train import load_bundle
 
     run_dir, out = Path(run_dir), Path(out)
     variant = variant or SHIPPED_VARIANT
@@ -357,7 +357,7 @@ def export_run(
     t0 = time.perf_counter()
     calibration, calibration_info = None, None
     if is_int8:
-        from training.config import TrainConfig
+        from tactile_deploy.training.config import TrainConfig
 
         calibration, calibration_info = calibration_maps(TrainConfig.model_validate(bundle["config"]), heldout_seed=held_seed)
     fp32_variant = fp32_twin(variant)
@@ -439,7 +439,7 @@ def calibration_maps(cfg, n: int = 256, heldout_seed: int | None = None) -> tupl
     of the training split of the run's dataset folder, or ``n`` fresh contacts of its synthetic
     generator (another seed than the training one and ``heldout_seed``, simulated on the CPU).
     A dataset folder that cannot be read is a :class:`UsageError`."""
-    from training.data import fresh_contacts, load, split_by_contact
+    from tactile_deploy.training.data import fresh_contacts, load, split_by_contact
 
     if cfg.data.synthetic is not None:
         spec = cfg.data.synthetic

@@ -1,4 +1,4 @@
-"""The file formats of :mod:`training` and their committed JSON Schemas (``python -m training.formats``
+"""The file formats of :mod:`tactile_deploy.training` and their committed JSON Schemas (``python -m tactile_deploy.training.formats``
 rewrites them; see :mod:`tactile_deploy.fileformat`)."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from tactile_deploy.fileformat import Format, schemas_main
-from training.card import ModelCard
-from training.config import TrainConfig
+from tactile_deploy.training.card import ModelCard
+from tactile_deploy.training.config import TrainConfig
 
 _HERE = Path(__file__).resolve().parent
 

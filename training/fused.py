@@ -26,8 +26,8 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
-from training.networks.coarsening import MeshLevel, Resampling
-from training.networks.mesh_vae import MeshDecoder
+from tactile_deploy.training.networks.coarsening import MeshLevel, Resampling
+from tactile_deploy.training.networks.mesh_vae import MeshDecoder
 
 
 def layered_blocks(level: MeshLevel, op: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:

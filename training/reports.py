@@ -1,6 +1,6 @@
 """Reconstruction quality of the coarsening hierarchy (the figures of docs/predictor.md).
 
-``python -m training report-coarsening --data DATA.npz [--png FIGURE.png]`` projects fields down
+``python -m tactile_deploy.training report-coarsening --data DATA.npz [--png FIGURE.png]`` projects fields down
 to level l and back up (``Hierarchy.down_up``) and reports the relative L2 error
 
     e_l = ||U_0 ... U_{l-1} D_{l-1} ... D_0 f - f|| / ||f||
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training.networks.coarsening import build_hierarchy
+from tactile_deploy.training.networks.coarsening import build_hierarchy
 
 
 def smooth_field(vertices_mm: np.ndarray) -> np.ndarray:

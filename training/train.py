@@ -32,13 +32,13 @@ import torch
 
 from tactile_deploy.atomic import atomic_path, write_json, write_npz, write_text
 from tactile_deploy.safe_torch import load_torch_file
-from training import distributed
-from training.config import StageConfig, TrainConfig
-from training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
-from training.errors import UsageError
-from training.networks.coarsening import build_hierarchy
-from training.networks.image_vae import vae_loss
-from training.networks.predictor import Predictor
+from tactile_deploy.training import distributed
+from tactile_deploy.training.config import StageConfig, TrainConfig
+from tactile_deploy.training.data import ContactData, Scales, check_data, compute_scales, load, split_by_contact
+from tactile_deploy.training.errors import UsageError
+from tactile_deploy.training.networks.coarsening import build_hierarchy
+from tactile_deploy.training.networks.image_vae import vae_loss
+from tactile_deploy.training.networks.predictor import Predictor
 
 BUNDLE_FORMAT = 1
 STAGES = ("image_vae", "mesh_vae", "lean_decoder", "projection", "ood_decoder", "finetune")
@@ -531,7 +531,7 @@ def _augmentation(cfg: TrainConfig, model: Predictor, device: torch.device, rank
     """x (B, 1, R, R) normalised depth -> augmented copy; None without ``cfg.augmentation``."""
     if cfg.augmentation is None:
         return None
-    from training.augment import Augmenter
+    from tactile_deploy.training.augment import Augmenter
 
     aug = Augmenter(cfg.augmentation, cfg.model.image.resolution, device=device)
     generator = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + rank + 1)
@@ -620,7 +620,7 @@ def plot_curves(history: dict, path: Path) -> None:
 def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]:
     """Rebuild the trained predictor from ``model.pt`` (checks the pad mesh hash)."""
     if not Path(path).is_file():
-        raise UsageError(f"training bundle {path} not found; train a run first (python -m training train "
+        raise UsageError(f"training bundle {path} not found; train a run first (python -m tactile_deploy.training train "
                          "--config CONFIG.json) or give its model.pt")
     try:
         bundle = load_torch_file(path, map_location=device)

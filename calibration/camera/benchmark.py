@@ -1,6 +1,6 @@
 """Benchmark: ``rectify`` of a raw camera frame onto the 128 x 128 sensor grid, one CPU thread.
 
-``python -m calibration.camera.benchmark`` prints the median time per call over many calls for
+``python -m tactile_deploy.calibration.camera.benchmark`` prints the median time per call over many calls for
 grey and colour uint8 frames at 640 x 480, with float and fixed-point (:func:`compact_remap`)
 tables, and the one-off cost of :func:`build_remap`.
 ``--small`` runs a few calls only (a smoke test of the benchmark itself).

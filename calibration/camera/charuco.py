@@ -20,7 +20,7 @@ side faces outwards (a transparency seen through from below); printed "down" is 
 
 Frames and what they determine
 ------------------------------
-* **One frame** (the board on the sensor plane): a single-view fit (:mod:`calibration.camera.
+* **One frame** (the board on the sensor plane): a single-view fit (:mod:`tactile_deploy.calibration.camera.
   fitting`): homography + principal point + k1, k2, p1, p2, with fx = fy = ``focal_px`` assumed.
   The raw pixel -> mm mapping is fully determined; the focal length, and hence the coefficients
   on their own, are not.
@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from calibration.camera.fitting import (
+from tactile_deploy.calibration.camera.fitting import (
     CalibrationError,
     PlaneFit,
     fit_plane_mapping,

@@ -108,7 +108,7 @@ def camera(
     from rich.console import Console
     from rich.table import Table
 
-    from calibration.camera.fitting import CalibrationError
+    from tactile_deploy.calibration.camera.fitting import CalibrationError
     from tactile_deploy.outputs import OutputPathError, check_distinct, check_output_file
     from tactile_deploy.imaging.camera_mapping import save_mapping
 
@@ -116,7 +116,7 @@ def camera(
     files = _list_images(frames)
     try:   # the inputs first (cheap), then the outputs, then the fit
         if target is TargetKind.charuco:
-            from calibration.camera.charuco import CharucoBoardSpec, load_board_spec
+            from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec, load_board_spec
 
             spec = load_board_spec(board) if board is not None else CharucoBoardSpec()
             names = [p.name for p in files]
@@ -154,7 +154,7 @@ def camera(
         _fail(str(e))
     try:
         if target is TargetKind.charuco:
-            from calibration.camera.charuco import calibrate_charuco
+            from tactile_deploy.calibration.camera.charuco import calibrate_charuco
 
             images = [_read_image(p) for p in files]
             fit = calibrate_charuco(
@@ -164,7 +164,7 @@ def camera(
             )
             shown = images[plane_index]
         else:
-            from calibration.camera.dots import calibrate_dots
+            from tactile_deploy.calibration.camera.dots import calibrate_dots
 
             images = [_read_image(p) for p in pressed]
             fit, _ = calibrate_dots(
@@ -197,7 +197,7 @@ def camera(
         console.print("[yellow]warning:[/yellow] part of the output grid lies outside the image; "
                       "those cells repeat the nearest edge pixel")
     if figure is not None:
-        from calibration.camera.figure import plot_fit
+        from tactile_deploy.calibration.camera.figure import plot_fit
 
         plot_fit(fit, shown, figure)
         console.print(f"figure -> {figure}")
@@ -217,7 +217,7 @@ def make_board(
     """Write a print-ready ChArUco board (true size at --dpi) and its description JSON."""
     from pydantic import ValidationError
 
-    from calibration.camera.charuco import CharucoBoardSpec, save_print_sheet
+    from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec, save_print_sheet
     from tactile_deploy.outputs import OutputPathError, check_output_file
 
     try:

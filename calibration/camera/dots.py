@@ -25,7 +25,7 @@ Steps
    image direction of sensor +x (from ``u_axis``/``v_axis``, the sensor axes that image right and
    down point along) is index +x. The index origin is the centre of the detected extent, checked
    against ``grid_shape`` when given.
-3. :func:`calibration.camera.fitting.fit_plane_mapping` on one view: homography + principal point
+3. :func:`tactile_deploy.calibration.camera.fitting.fit_plane_mapping` on one view: homography + principal point
    + k1, k2, p1, p2 with fx = fy assumed (what one view determines: see that module). The mapping
    is measured where the dots are; use a grid that spans the sensing area.
 """
@@ -40,8 +40,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calibration.camera.charuco import TargetNotFoundError
-from calibration.camera.fitting import (
+from tactile_deploy.calibration.camera.charuco import TargetNotFoundError
+from tactile_deploy.calibration.camera.fitting import (
     CalibrationError,
     PlaneFit,
     fit_plane_mapping,

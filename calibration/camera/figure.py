@@ -1,6 +1,6 @@
 """Diagnostic figures of a camera-mapping fit.
 
-``python -m calibration.camera.figure --out docs/img/camera_mapping.png`` regenerates the
+``python -m tactile_deploy.calibration.camera.figure --out docs/img/camera_mapping.png`` regenerates the
 documentation figure from virtual-sensor frames (a ChArUco view and a pressed dot grid seen through
 a known barrel-distorted camera).
 """
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera.fitting import PlaneFit
+from tactile_deploy.calibration.camera.fitting import PlaneFit
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.imaging.camera_mapping import (
     rectify,
@@ -104,9 +104,9 @@ def make_docs_figure(path: str | Path, dpi: int = 80) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calibration.camera.charuco import CharucoBoardSpec, calibrate_charuco
-    from calibration.camera.dots import calibrate_dots
-    from calibration.camera.synthetic import (
+    from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec, calibrate_charuco
+    from tactile_deploy.calibration.camera.dots import calibrate_dots
+    from tactile_deploy.calibration.camera.synthetic import (
         VirtualCamera,
         board_to_sensor,
         render_charuco_frame,

@@ -23,7 +23,7 @@ What one view determines
 * The split between the lens and the homography: only up to a homography. Compare fields
   modulo a homography, or compare the composite mapping.
 
-Several views at different tilts (``cv2.calibrateCamera``, :mod:`calibration.camera.charuco`)
+Several views at different tilts (``cv2.calibrateCamera``, :mod:`tactile_deploy.calibration.camera.charuco`)
 determine fx, fy, cx, cy and the coefficients themselves.
 """
 

@@ -23,7 +23,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from calibration.camera.charuco import CharucoBoardSpec, board_image
+from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec, board_image
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The discrepancy workflow: find where simulation and measurement disagree, name the missing
 effect, add it to the sensor model, and show the gap shrink.
 
-``find_discrepancy(sensor, measured)`` (:mod:`calibration.discrepancy.workflow`) runs it top to
+``find_discrepancy(sensor, measured)`` (:mod:`tactile_deploy.calibration.discrepancy.workflow`) runs it top to
 bottom; one module per concept:
 
 ==================  ======================================================================

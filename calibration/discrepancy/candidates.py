@@ -9,8 +9,8 @@ consequence on a depth map is simulated:
   contact (FEM, effects stage by stage): mechanical and geometric effects;
 * ``"view"``: an optics effect that changes the camera mapping: measured depth maps are made by
   an imaging pipeline calibrated on the nominal camera, so the map is seen through the changed
-  view (:mod:`calibration.discrepancy.view_warp`); with measured frames the variant's own frame
-  is imaged instead (:mod:`calibration.discrepancy.imaging`), exact.
+  view (:mod:`tactile_deploy.calibration.discrepancy.view_warp`); with measured frames the variant's own frame
+  is imaged instead (:mod:`tactile_deploy.calibration.discrepancy.imaging`), exact.
 
 Coordinates are the effect's parameters except for the tilt, fitted as its slope vector
 ``tan(angle) (cos azimuth, sin azimuth)`` (the residual is smooth in it, not in the azimuth).

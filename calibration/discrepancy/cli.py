@@ -39,16 +39,16 @@ def discrepancy_command(
                                 "responses (the machine's cores)."),
 ) -> None:
     """Name the effect missing from a sensor model, with its size (or: none, unexplained)."""
-    from calibration.discrepancy.apply import apply_effect, check_target
-    from calibration.discrepancy.candidates import candidate_library
-    from calibration.discrepancy.measured import (
+    from tactile_deploy.calibration.discrepancy.apply import apply_effect, check_target
+    from tactile_deploy.calibration.discrepancy.candidates import candidate_library
+    from tactile_deploy.calibration.discrepancy.measured import (
         MeasuredDataError,
         load_measured,
         measured_sha256,
     )
-    from calibration.discrepancy.report import check_report_folder
-    from calibration.discrepancy.verdict import verdict_text
-    from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
+    from tactile_deploy.calibration.discrepancy.report import check_report_folder
+    from tactile_deploy.calibration.discrepancy.verdict import verdict_text
+    from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
     from tactile_deploy.outputs import OutputPathError
     from tactile_deploy.cli.common import err_console, fail, prepare_simulator, progress_bar
     from tactile_deploy.sensors.catalog import UnknownSensorError, sensor_config
@@ -101,7 +101,7 @@ def discrepancy_command(
     else:
         typer.echo(verdict_text(v))
     if report is not None:
-        from calibration.discrepancy.report import write_report
+        from tactile_deploy.calibration.discrepancy.report import write_report
 
         try:
             files = write_report(result, report, overwrite=overwrite)

@@ -14,7 +14,7 @@ import itertools
 
 import numpy as np
 
-from calibration.discrepancy.reproduce import ContactReproducer
+from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.sensors.config import EffectSpec
 

@@ -1,6 +1,6 @@
 """The worked example of docs/discrepancy.md, with its figures.
 
-    python -m calibration.discrepancy.figure [--out docs/img/discrepancy] [--contacts 40]
+    python -m tactile_deploy.calibration.discrepancy.figure [--out docs/img/discrepancy] [--contacts 40]
 
 The shipped virtual sensor ``gelslim1`` is the model; "measured" presses come from the same
 sensor with a domed gel (``dome``, 0.3 mm sag at the rim) that the model lacks.
@@ -51,12 +51,12 @@ def main(argv=None) -> None:
         for name in ("verdict_before", "verdict_after"):
             _markers(args.doc, name)
 
-    from calibration.discrepancy.apply import apply_effect
-    from calibration.discrepancy.measured import save_measured
-    from calibration.discrepancy.report import write_report
-    from calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
-    from calibration.discrepancy.verdict import verdict_text
-    from calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
+    from tactile_deploy.calibration.discrepancy.apply import apply_effect
+    from tactile_deploy.calibration.discrepancy.measured import save_measured
+    from tactile_deploy.calibration.discrepancy.report import write_report
+    from tactile_deploy.calibration.discrepancy.synthetic import hidden_effect_data, random_contacts
+    from tactile_deploy.calibration.discrepancy.verdict import verdict_text
+    from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, find_discrepancy
     from tactile_deploy.atomic import write_text
     from tactile_deploy.sensors import load_sensor
     from tactile_deploy.sensors.config import EffectSpec, load_sensor_config

@@ -13,7 +13,7 @@ is made the way the measured maps were::
 
 and the camera noise through the pipeline is sampled the same way: ``n_noise`` further draws,
 each minus the mean, are realisations of the residual's noise (the null distribution of every
-statistic of :mod:`calibration.discrepancy.selection`, instead of white noise).
+statistic of :mod:`tactile_deploy.calibration.discrepancy.selection`, instead of white noise).
 
 Common random numbers: the draws of one contact use the same generators for the model and for
 every variant, so a candidate's change is not buried under the difference of two noise draws.

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.discrepancy.verdict import verdict_text
-from calibration.discrepancy.workflow import DiscrepancyResult
+from tactile_deploy.calibration.discrepancy.verdict import verdict_text
+from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyResult
 from tactile_deploy.outputs import OutputPathError, check_not_input
 from tactile_deploy.atomic import atomic_path, replace_folder, write_text
 

@@ -5,10 +5,10 @@ effects); a contact is reproduced by its depth-map truth (:meth:`VirtualSensor.d
 FEM on the pad's surface Green's functions, effects applied stage by stage, the deformed mesh
 rendered onto the standard 128 x 128 depth grid). A *variant* is the sensor with one effect added
 or changed. Contacts that were not commanded (or not recorded) are estimated from the map as in
-:mod:`calibration.fem_fit.fit`: the maximum-displacement region, then least squares on the depth
+:mod:`tactile_deploy.calibration.fem_fit.fit`: the maximum-displacement region, then least squares on the depth
 gap.
 
-With measured RGB frames the reproducer carries a :class:`~calibration.discrepancy.imaging.
+With measured RGB frames the reproducer carries a :class:`~tactile_deploy.calibration.discrepancy.imaging.
 FrameImaging`: its maps are then the model's frames through the same imaging pipeline (the
 *imaged* maps), and :meth:`ContactReproducer.surface_map` still gives the FEM's surface.
 """
@@ -78,7 +78,7 @@ class ContactReproducer:
 
     def __init__(self, sensor: VirtualSensor, imaging=None):
         self.sensor = sensor
-        #: :class:`~calibration.discrepancy.imaging.FrameImaging` or None (maps are the FEM's).
+        #: :class:`~tactile_deploy.calibration.discrepancy.imaging.FrameImaging` or None (maps are the FEM's).
         self.imaging = imaging
         self._indenters: dict[str, CachedIndenter] = {}
         self._variants: dict[str, VirtualSensor] = {}

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
-from calibration.discrepancy.noise import NoiseEstimate
-from calibration.discrepancy.tables import CandidateTable, ResponseTables
+from tactile_deploy.calibration.discrepancy.noise import NoiseEstimate
+from tactile_deploy.calibration.discrepancy.tables import CandidateTable, ResponseTables
 
 #: Quantile of the effect-free best gain a candidate must exceed.
 NULL_QUANTILE = 0.99

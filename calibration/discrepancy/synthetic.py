@@ -16,7 +16,7 @@ import zlib
 
 import numpy as np
 
-from calibration.discrepancy.measured import MeasuredData
+from tactile_deploy.calibration.discrepancy.measured import MeasuredData
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.sensors.config import EffectSpec
 from tactile_deploy.sensors.effects import effect_class
@@ -83,7 +83,7 @@ def hidden_effect_data(sensor: VirtualSensor, effects: list[EffectSpec], contact
     frames : store the sensor's camera frames instead (its own camera noise; ``noise_mm`` is
     not used), as a real sensor delivers them.
     """
-    from calibration.discrepancy.reproduce import CachedIndenter
+    from tactile_deploy.calibration.discrepancy.reproduce import CachedIndenter
     from tactile_deploy.indenters import get_indenter
 
     cfg = sensor.config

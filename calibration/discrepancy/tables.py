@@ -11,10 +11,10 @@ interpolation of the tabulated changes::
 Everything is kept on each contact's region of interest (ROI): the pad pixels where the base map
 or any tabulated change exceeds ``ROI_THRESHOLD_MM``, dilated by ``ROI_DILATE_PX``; outside it
 every candidate predicts the same map. Fits, cross-validation and the bootstrap then run on these
-tables alone (:mod:`calibration.discrepancy.selection`); the selected effect is re-simulated
+tables alone (:mod:`tactile_deploy.calibration.discrepancy.selection`); the selected effect is re-simulated
 exactly.
 
-With measured frames (the reproducer has an imaging path, :mod:`calibration.discrepancy.imaging`)
+With measured frames (the reproducer has an imaging path, :mod:`tactile_deploy.calibration.discrepancy.imaging`)
 every tabulated map is an imaged map: the base, the candidates' values (optical ones included:
 the variant's frame through the calibrated pipeline, no view warp) and the exact re-simulations;
 the ROI starts from the FEM surface's change (an imaged map is nowhere exactly flat), and each
@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from calibration.discrepancy.candidates import Candidate, lagrange_weights
-from calibration.discrepancy.reproduce import ContactReproducer, is_round
-from calibration.discrepancy.view_warp import ViewWarp
+from tactile_deploy.calibration.discrepancy.candidates import Candidate, lagrange_weights
+from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer, is_round
+from tactile_deploy.calibration.discrepancy.view_warp import ViewWarp
 from tactile_deploy.fem.material import NU_MAX_VALIDATED
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.sensors.config import EffectSpec

@@ -26,19 +26,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.discrepancy.candidates import candidate_library
-from calibration.discrepancy.experiment import distinguishing_experiment
-from calibration.discrepancy.fingerprint import Fingerprint, residual_fingerprint
-from calibration.discrepancy.imaging import FrameImaging
-from calibration.discrepancy.measured import MeasuredData, MeasuredDataError
-from calibration.discrepancy.noise import (
+from tactile_deploy.calibration.discrepancy.candidates import candidate_library
+from tactile_deploy.calibration.discrepancy.experiment import distinguishing_experiment
+from tactile_deploy.calibration.discrepancy.fingerprint import Fingerprint, residual_fingerprint
+from tactile_deploy.calibration.discrepancy.imaging import FrameImaging
+from tactile_deploy.calibration.discrepancy.measured import MeasuredData, MeasuredDataError
+from tactile_deploy.calibration.discrepancy.noise import (
     NoiseEstimate,
     estimate_noise,
     known_noise,
     noise_from_realisations,
 )
-from calibration.discrepancy.reproduce import ContactReproducer
-from calibration.discrepancy.selection import (
+from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer
+from tactile_deploy.calibration.discrepancy.selection import (
     STRUCTURE_MIN_EXCESS,
     STRUCTURE_Z,
     Selection,
@@ -46,15 +46,15 @@ from calibration.discrepancy.selection import (
     select_effect,
     sufficient_stats,
 )
-from calibration.discrepancy.tables import (
+from tactile_deploy.calibration.discrepancy.tables import (
     CandidateTable,
     Contact,
     ResponseTables,
     refine_table,
     tabulate,
 )
-from calibration.discrepancy.verdict import CandidateReport, DiscrepancyVerdict, finite
-from calibration.discrepancy.view_warp import ViewWarp
+from tactile_deploy.calibration.discrepancy.verdict import CandidateReport, DiscrepancyVerdict, finite
+from tactile_deploy.calibration.discrepancy.view_warp import ViewWarp
 from tactile_deploy.sensors.config import EffectSpec
 from tactile_deploy.sensors.virtual import VirtualSensor
 

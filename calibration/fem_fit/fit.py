@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage, optimize
 
-from calibration.fem_fit.operator_bank import OperatorBank
+from tactile_deploy.calibration.fem_fit.operator_bank import OperatorBank
 from tactile_deploy.camera.depth import DepthCamera
 from tactile_deploy.indenters import ContactPose, get_indenter
 

@@ -13,7 +13,7 @@ solved in closed form at every step as the mean residual over that frame's far-f
 (``ShadingSamples.far``, away from any contact); the offsets are reported, not part of the model.
 
 The real GelSight-class presses in ``../shared/data/real/fots_gelsight_ballpress`` are fitted by
-:func:`fit_fots` (``python -m calibration.optics_fit`` writes the fitted model, the comparison
+:func:`fit_fots` (``python -m tactile_deploy.calibration.optics_fit`` writes the fitted model, the comparison
 table and ``docs/img/optics_real_vs_sim.png``). Their true surface is not measured; it is built
 from the hand-labelled contact circles and the known ball (:func:`sphere_press_surface`): the
 ball's sphere cap inside the circle and the gel's sinking around it, whose depth at the rim is
@@ -27,8 +27,8 @@ and their true surface), :mod:`.press_surface` (the surface of a ball press), :m
 
 from __future__ import annotations
 
-from calibration.optics_fit.fit import OpticsFit, SurfaceParameters, fit_optics, predict
-from calibration.optics_fit.fots import (
+from tactile_deploy.calibration.optics_fit.fit import OpticsFit, SurfaceParameters, fit_optics, predict
+from tactile_deploy.calibration.optics_fit.fots import (
     FOTS_BALL_RADIUS_MM,
     FOTS_FOLDER,
     FOTS_PX_PER_MM,
@@ -41,15 +41,15 @@ from calibration.optics_fit.fots import (
     load_fots,
     press_samples,
 )
-from calibration.optics_fit.parameters import (
+from tactile_deploy.calibration.optics_fit.parameters import (
     OpticsFitError,
     parameter_bounds,
     parameter_paths,
     parameter_vector,
     with_parameters,
 )
-from calibration.optics_fit.press_surface import hertz_exterior_shape, sphere_press_surface
-from calibration.optics_fit.samples import SATURATED_GREY, ShadingSamples, frame_offsets, usable
+from tactile_deploy.calibration.optics_fit.press_surface import hertz_exterior_shape, sphere_press_surface
+from tactile_deploy.calibration.optics_fit.samples import SATURATED_GREY, ShadingSamples, frame_offsets, usable
 
 __all__ = [
     "FOTS_BALL_RADIUS_MM", "FOTS_FOLDER", "FOTS_PX_PER_MM", "SATURATED_GREY", "FotsReport",

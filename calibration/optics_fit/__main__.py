@@ -1,4 +1,4 @@
-"""``python -m calibration.optics_fit``: fit the optics model to the real FOTS presses and write
+"""``python -m tactile_deploy.calibration.optics_fit``: fit the optics model to the real FOTS presses and write
 the fitted virtual sensor, the comparison table and ``docs/img/optics_real_vs_sim.png``."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from calibration.optics_fit.fots import (
+from tactile_deploy.calibration.optics_fit.fots import (
     ROOT,
     fit_fots,
     fots_figure,

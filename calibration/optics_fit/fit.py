@@ -9,14 +9,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.optics_fit.parameters import (
+from tactile_deploy.calibration.optics_fit.parameters import (
     normalise_model,
     parameter_bounds,
     parameter_paths,
     parameter_vector,
     with_parameters,
 )
-from calibration.optics_fit.samples import ShadingSamples, usable
+from tactile_deploy.calibration.optics_fit.samples import ShadingSamples, usable
 from tactile_deploy.optics.model import OpticsModel
 from tactile_deploy.optics.render import albedo_field, shade_points, shading_basis
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.optics_fit.fit import OpticsFit, SurfaceParameters, fit_optics, predict
-from calibration.optics_fit.parameters import OpticsFitError
-from calibration.optics_fit.press_surface import sphere_press_surface
-from calibration.optics_fit.samples import ShadingSamples, frame_offsets, usable
+from tactile_deploy.calibration.optics_fit.fit import OpticsFit, SurfaceParameters, fit_optics, predict
+from tactile_deploy.calibration.optics_fit.parameters import OpticsFitError
+from tactile_deploy.calibration.optics_fit.press_surface import sphere_press_surface
+from tactile_deploy.calibration.optics_fit.samples import ShadingSamples, frame_offsets, usable
 from tactile_deploy.imaging.camera_mapping import CameraMapping, pixels_to_sensor_mm
 from tactile_deploy.optics.model import Light, OpticsModel, simple_camera
 

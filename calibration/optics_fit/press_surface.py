@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from calibration.optics_fit.parameters import OpticsFitError
+from tactile_deploy.calibration.optics_fit.parameters import OpticsFitError
 
 
 def hertz_exterior_shape(r_mm: np.ndarray, a_mm: float) -> tuple[np.ndarray, np.ndarray]:

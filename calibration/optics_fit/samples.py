@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.optics_fit.parameters import OpticsFitError
-from calibration.optics_fit.press_surface import sphere_press_surface
+from tactile_deploy.calibration.optics_fit.parameters import OpticsFitError
+from tactile_deploy.calibration.optics_fit.press_surface import sphere_press_surface
 
 #: Grey level at or above which a channel counts as saturated.
 SATURATED_GREY = 254

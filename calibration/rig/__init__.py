@@ -1,11 +1,11 @@
 """Indentation rig: a G-code stage and a force gauge over pyserial, and a simulated rig.
 
-Configs (:mod:`calibration.rig.config`) import no hardware library; the drivers
+Configs (:mod:`tactile_deploy.calibration.rig.config`) import no hardware library; the drivers
 (:class:`GCodeStage`, :class:`ForceGauge`, :class:`IndentationRig`) share the
 ``connect`` / ``read`` / ``disconnect`` base and work as context managers. See docs/rig.md.
 """
 
-from calibration.rig.config import (
+from tactile_deploy.calibration.rig.config import (
     GaugeConfig,
     RigConfig,
     StageConfig,
@@ -14,7 +14,7 @@ from calibration.rig.config import (
     rig_config_from_dict,
     save_rig_config,
 )
-from calibration.rig.errors import (
+from tactile_deploy.calibration.rig.errors import (
     GaugeError,
     RigConfigError,
     RigConnectionError,
@@ -23,10 +23,10 @@ from calibration.rig.errors import (
     SoftLimitError,
     StageError,
 )
-from calibration.rig.factory import GAUGE_DRIVERS, STAGE_DRIVERS, make_gauge, make_stage
-from calibration.rig.gauge import ForceGauge
-from calibration.rig.indent import Contact, IndentationRig, PressRecord, RigReading
-from calibration.rig.stage import GCodeStage, StagePosition, parse_position
+from tactile_deploy.calibration.rig.factory import GAUGE_DRIVERS, STAGE_DRIVERS, make_gauge, make_stage
+from tactile_deploy.calibration.rig.gauge import ForceGauge
+from tactile_deploy.calibration.rig.indent import Contact, IndentationRig, PressRecord, RigReading
+from tactile_deploy.calibration.rig.stage import GCodeStage, StagePosition, parse_position
 
 __all__ = [
     "GAUGE_DRIVERS",

@@ -1,7 +1,7 @@
 """Common base of the rig devices and the line-oriented serial link they share.
 
-Every device (:class:`~calibration.rig.stage.GCodeStage`,
-:class:`~calibration.rig.gauge.ForceGauge`, :class:`~calibration.rig.indent.IndentationRig`)
+Every device (:class:`~tactile_deploy.calibration.rig.stage.GCodeStage`,
+:class:`~tactile_deploy.calibration.rig.gauge.ForceGauge`, :class:`~tactile_deploy.calibration.rig.indent.IndentationRig`)
 has ``connect()`` / ``read()`` / ``disconnect()`` and can be used with ``with``.
 
 :class:`LineChannel` opens a port with ``serial.serial_for_url``, so a config may name a device
@@ -17,7 +17,7 @@ import logging
 import time
 from typing import Any, Callable
 
-from calibration.rig.errors import RigConnectionError
+from tactile_deploy.calibration.rig.errors import RigConnectionError
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Command line of the indentation rig: ``simulate`` and ``press``.
 
-``rig_app`` is a typer sub-app; it also runs on its own: ``python -m calibration.rig.cli --help``.
+``rig_app`` is a typer sub-app; it also runs on its own: ``python -m tactile_deploy.calibration.rig.cli --help``.
 """
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ from typing import Optional
 
 import typer
 
-from calibration.rig.config import (
+from tactile_deploy.calibration.rig.config import (
     RigConfig,
     load_rig_config,
     rig_config_from_dict,
     save_rig_config,
 )
-from calibration.rig.errors import RigConfigError, RigError
-from calibration.rig.indent import IndentationRig, check_press_depth
+from tactile_deploy.calibration.rig.errors import RigConfigError, RigError
+from tactile_deploy.calibration.rig.indent import IndentationRig, check_press_depth
 
 rig_app = typer.Typer(
     help="Indentation rig: a G-code stage and a force gauge on serial ports.",
@@ -58,7 +58,7 @@ def simulate(
 ) -> None:
     """Start a simulated rig on two pseudo-terminals, print their names, run until Ctrl-C."""
     from tactile_deploy.outputs import OutputPathError, check_output_file
-    from calibration.rig.simulated import HertzForce, SimulatedRig
+    from tactile_deploy.calibration.rig.simulated import HertzForce, SimulatedRig
 
     if write_config is not None:
         try:

@@ -23,7 +23,7 @@ origin; it is a calibrated value.
 
 Files are JSON, read with :func:`load_rig_config` and written atomically with
 :func:`save_rig_config`. The JSON Schema lives next to this module
-(``rig_config.schema.json``) and is regenerated with ``python -m calibration.formats``.
+(``rig_config.schema.json``) and is regenerated with ``python -m tactile_deploy.calibration.formats``.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from calibration.rig.errors import RigConfigError
+from tactile_deploy.calibration.rig.errors import RigConfigError
 from tactile_deploy.fileformat import StrictModel
 
 #: Version of the rig config file format written by :func:`save_rig_config`.
@@ -105,7 +105,7 @@ class StageFrame(StrictModel):
 class StageConfig(StrictModel):
     """A three-axis stage that speaks G-code over a serial line."""
 
-    kind: str = Field("gcode", description="Stage driver name (see calibration.rig.factory).")
+    kind: str = Field("gcode", description="Stage driver name (see tactile_deploy.calibration.rig.factory).")
     port: str = Field(
         ...,
         min_length=1,
@@ -177,7 +177,7 @@ class StageConfig(StrictModel):
 class GaugeConfig(StrictModel):
     """A force gauge answering an ASCII request with one line, e.g. ``?`` -> ``12.34 N``."""
 
-    kind: str = Field("ascii", description="Gauge driver name (see calibration.rig.factory).")
+    kind: str = Field("ascii", description="Gauge driver name (see tactile_deploy.calibration.rig.factory).")
     port: str = Field(..., min_length=1, description="Serial port or pyserial URL.")
     baudrate: int = Field(9600, gt=0, description="Serial baud rate, bit/s.")
     newline: Newline = Field("\n", description="Line terminator appended to the request.")

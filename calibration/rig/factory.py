@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from calibration.rig.config import GaugeConfig, StageConfig
-from calibration.rig.errors import RigConfigError
-from calibration.rig.gauge import ForceGauge
-from calibration.rig.stage import GCodeStage
+from tactile_deploy.calibration.rig.config import GaugeConfig, StageConfig
+from tactile_deploy.calibration.rig.errors import RigConfigError
+from tactile_deploy.calibration.rig.gauge import ForceGauge
+from tactile_deploy.calibration.rig.stage import GCodeStage
 
 #: Stage driver classes by ``StageConfig.kind``.
 STAGE_DRIVERS: dict[str, type[GCodeStage]] = {"gcode": GCodeStage}

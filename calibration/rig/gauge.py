@@ -9,9 +9,9 @@ Faults:
 
 * a line that does not match is garbled: it is logged and the request is sent again at once;
   more than ``max_unexpected_lines`` of them in one reading raise
-  :class:`~calibration.rig.errors.GaugeError`;
+  :class:`~tactile_deploy.calibration.rig.errors.GaugeError`;
 * no matching line within ``timeout_s``: the request is sent again, up to ``retries`` times,
-  then :class:`~calibration.rig.errors.RigTimeoutError` names the port and the request;
+  then :class:`~tactile_deploy.calibration.rig.errors.RigTimeoutError` names the port and the request;
 * after a reading that needed a repeat because of a timeout, the link is drained for
   ``timeout_s`` so a late reply cannot be taken for a later reading.
 """
@@ -23,9 +23,9 @@ import re
 import time
 from typing import Any, Callable
 
-from calibration.rig.base import LineChannel, RigDevice
-from calibration.rig.config import GaugeConfig
-from calibration.rig.errors import GaugeError, RigTimeoutError
+from tactile_deploy.calibration.rig.base import LineChannel, RigDevice
+from tactile_deploy.calibration.rig.config import GaugeConfig
+from tactile_deploy.calibration.rig.errors import GaugeError, RigTimeoutError
 
 logger = logging.getLogger(__name__)
 

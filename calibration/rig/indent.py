@@ -30,10 +30,10 @@ from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from calibration.rig.base import RigDevice
-from calibration.rig.config import RigConfig
-from calibration.rig.factory import make_gauge, make_stage
-from calibration.rig.stage import StagePosition
+from tactile_deploy.calibration.rig.base import RigDevice
+from tactile_deploy.calibration.rig.config import RigConfig
+from tactile_deploy.calibration.rig.factory import make_gauge, make_stage
+from tactile_deploy.calibration.rig.stage import StagePosition
 from tactile_deploy.pad.geometry import PadGeometry
 
 logger = logging.getLogger(__name__)

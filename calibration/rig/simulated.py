@@ -42,7 +42,7 @@ import tty
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
-from calibration.rig.config import RigConfig, StageFrame, rig_config_from_dict
+from tactile_deploy.calibration.rig.config import RigConfig, StageFrame, rig_config_from_dict
 
 ForceFn = Callable[[float, float, float], float]
 

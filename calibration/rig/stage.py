@@ -7,9 +7,9 @@ terminal reply:
 
 * ``ok`` (or ``ok ...``) ends a command successfully;
 * a line starting with ``error`` / ``Error`` or ``!!`` ends it with a failure:
-  :class:`~calibration.rig.errors.StageError` quoting the command and the reply;
+  :class:`~tactile_deploy.calibration.rig.errors.StageError` quoting the command and the reply;
 * ``echo:Unknown command ...`` means the firmware lacks the command:
-  :class:`~calibration.rig.errors.StageError`;
+  :class:`~tactile_deploy.calibration.rig.errors.StageError`;
 * ``busy: ...`` is a keep-alive: the firmware is still working, the timeout restarts;
 * ``echo:``, ``//``, ``start`` and ``wait`` lines are information and are skipped;
 * for ``M114`` the line ``X:1.00 Y:2.00 Z:3.00 E:0.00 Count ...`` carries the position;
@@ -18,15 +18,15 @@ terminal reply:
 
 Every command used here is idempotent in absolute mode (``connect()`` sends ``G21`` and
 ``G90``), so on a timeout, or an ``M114`` reply without a readable position, the command is sent
-again, up to ``retries`` times; then :class:`~calibration.rig.errors.RigTimeoutError` names the
+again, up to ``retries`` times; then :class:`~tactile_deploy.calibration.rig.errors.RigTimeoutError` names the
 port and the command. Input is discarded before each command, and after a command that needed
 a retry the link is drained for ``timeout_s`` so that a late reply to the first attempt cannot be
 taken for the reply to the next command.
 
 Targets are checked against the soft limits before anything is sent
-(:class:`~calibration.rig.errors.SoftLimitError`).
+(:class:`~tactile_deploy.calibration.rig.errors.SoftLimitError`).
 
-All coordinates here are **stage-frame** mm; see :mod:`calibration.rig.config` for the mapping
+All coordinates here are **stage-frame** mm; see :mod:`tactile_deploy.calibration.rig.config` for the mapping
 to the sensor frame.
 """
 
@@ -37,9 +37,9 @@ import re
 import time
 from typing import Any, Callable, NamedTuple
 
-from calibration.rig.base import LineChannel, RigDevice
-from calibration.rig.config import StageConfig
-from calibration.rig.errors import RigTimeoutError, SoftLimitError, StageError
+from tactile_deploy.calibration.rig.base import LineChannel, RigDevice
+from tactile_deploy.calibration.rig.config import StageConfig
+from tactile_deploy.calibration.rig.errors import RigTimeoutError, SoftLimitError, StageError
 
 logger = logging.getLogger(__name__)
 

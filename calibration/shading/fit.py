@@ -118,7 +118,7 @@ def _training_samples(diffs, saturated, circles, radii, ball_radius_px, cfg: Sha
     far-field samples.
 
     Inside ``radii`` the sphere of the ball; where a press has a profile
-    (:class:`~calibration.shading.press_profile.PressProfile`), the ring from there out to
+    (:class:`~tactile_deploy.calibration.shading.press_profile.PressProfile`), the ring from there out to
     ``far_factor`` contact radii gets the profile's slope, one pixel in ``ring_stride`` along
     each axis (a pixel there weighs 1 / ring_stride^2 of a contact pixel); beyond it zero
     gradient.

@@ -33,7 +33,7 @@ class PressSet:
     names : N file names (no folder).
     circles : (N, 3) float64 px ``(column, row, radius)`` of the contact circles, or None.
     profiles : N modelled depth profiles around the contact centres
-        (:class:`~calibration.shading.press_profile.PressProfile`, None where there is none):
+        (:class:`~tactile_deploy.calibration.shading.press_profile.PressProfile`, None where there is none):
         training targets for the gel outside the contact; or None.
     """
 

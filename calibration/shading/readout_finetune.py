@@ -5,7 +5,7 @@ units within assembly tolerances; on a built unit its depth is a few per cent of
 its ball caps come out too flat (docs/shading.md). The calibration knows the depth of the
 unit's own presses: each rig press is the ball at the rig's position (sensor frame) pushed in by
 the rig's intrusion plus its zero offset (the FEM step fits it), and the pad's FEM gives the
-surface around the cap (:class:`~calibration.shading.press_profile.PressProfile`). Those depth
+surface around the cap (:class:`~tactile_deploy.calibration.shading.press_profile.PressProfile`). Those depth
 maps, and the no-contact frames with zero depth, continue the design's network
 (:mod:`tactile_deploy.learning.readout_finetuning`; needs torch and onnx, the ``train``
 extra).

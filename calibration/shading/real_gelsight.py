@@ -1,6 +1,6 @@
 """A plugin of the real GelSight-class sensor of the FOTS ball presses (``../shared/data/real``).
 
-    python -m calibration.shading.real_gelsight --out out/adapt/domains/fots-gelsight
+    python -m tactile_deploy.calibration.shading.real_gelsight --out out/adapt/domains/fots-gelsight
 
 Crop camera mapping (19.58 px/mm), shading model fitted on the 42 presses themselves, their
 background as the reference frame and its depth as the noise reference (kept: it is part of the
@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibration.shading.fit import fit_shading
-from calibration.shading.presses import PressSet, load_presses
+from tactile_deploy.calibration.shading.fit import fit_shading
+from tactile_deploy.calibration.shading.presses import PressSet, load_presses
 from tactile_deploy.imaging.camera_mapping import crop_camera_mapping
 from tactile_deploy.imaging.shading import save_shading
 from tactile_deploy.pad.topology import MeshTopology

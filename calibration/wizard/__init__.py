@@ -1,2 +1,2 @@
 """The calibration wizard: a new sensor -> a plugin (docs/calibration.md); the steps are in
-:mod:`calibration.wizard.steps`, the data they leave in :mod:`calibration.wizard.work_data`."""
+:mod:`tactile_deploy.calibration.wizard.steps`, the data they leave in :mod:`tactile_deploy.calibration.wizard.work_data`."""

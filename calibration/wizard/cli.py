@@ -60,9 +60,9 @@ def calibrate_callback(
         typer.echo(ctx.get_help())
         raise typer.Exit(0 if not given else 2)
 
-    from calibration.wizard.config import WizardConfigError, load_wizard_config
-    from calibration.wizard.ui import AutoUI, InteractiveUI
-    from calibration.wizard.wizard import WizardError, run_wizard
+    from tactile_deploy.calibration.wizard.config import WizardConfigError, load_wizard_config
+    from tactile_deploy.calibration.wizard.ui import AutoUI, InteractiveUI
+    from tactile_deploy.calibration.wizard.wizard import WizardError, run_wizard
 
     if not yes and not sys.stdin.isatty():
         _fail("the wizard asks questions: run it in a terminal, or pass --yes (with --config) "

@@ -2,7 +2,7 @@
 
 One JSON file, every field optional (defaults suit a GelSlim-class sensor): the JSON Schema is
 committed as ``calibration/wizard/wizard_config.schema.json`` (``python -m
-calibration.formats`` rewrites it; a test fails when it drifts). Lengths in mm, sensor
+tactile_deploy.calibration.formats`` rewrites it; a test fails when it drifts). Lengths in mm, sensor
 frame (origin at the centre of the sensing surface, z out of the gel).
 """
 
@@ -15,7 +15,7 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from calibration.shading.fit import ShadingFitConfig
+from tactile_deploy.calibration.shading.fit import ShadingFitConfig
 from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.jsonfile import read_json, validation_error_text
 
@@ -111,7 +111,7 @@ class PressSettings(StrictModel):
 
 
 class ShadingSettings(StrictModel):
-    """Step 4: the shading model (calibration.shading.fit.ShadingFitConfig settings)."""
+    """Step 4: the shading model (tactile_deploy.calibration.shading.fit.ShadingFitConfig settings)."""
 
     bins: int = Field(24, ge=4, le=128, description="Colour bins per channel.")
     node_spacing_mm: float = Field(3.0, gt=0, description="Spacing of the table's position "
@@ -192,7 +192,7 @@ class WizardConfig(StrictModel):
     copy_model: bool = Field(True, description="Copy the model into the plugin folder (a "
                              "self-contained plugin) instead of referencing it by path.")
     readout: str | None = Field(None, description="A learned read-out of the sensor's design "
-                                "(.onnx from `python -m training.shading_net`) for the plugin to "
+                                "(.onnx from `python -m tactile_deploy.training.shading_net`) for the plugin to "
                                 "turn frames into depth with instead of the fitted shading model "
                                 "(None: the shading model); a relative path is relative to the "
                                 "current folder. The noise reference is made with it, and its "
@@ -224,7 +224,7 @@ class WizardConfig(StrictModel):
 
 
 def shading_fit_config(settings: ShadingSettings) -> ShadingFitConfig:
-    """The :class:`~calibration.shading.fit.ShadingFitConfig` of the wizard's shading settings."""
+    """The :class:`~tactile_deploy.calibration.shading.fit.ShadingFitConfig` of the wizard's shading settings."""
     return ShadingFitConfig(bins=settings.bins, node_spacing_mm=settings.node_spacing_mm,
                             kernel_sigma_mm=settings.kernel_sigma_mm,
                             ring_stride=settings.ring_stride, prior_model=settings.prior)

@@ -7,9 +7,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from calibration.wizard.config import WizardConfig
-from calibration.wizard.state import WizardState, WorkFolder
-from calibration.wizard.station import Station
+from tactile_deploy.calibration.wizard.config import WizardConfig
+from tactile_deploy.calibration.wizard.state import WizardState, WorkFolder
+from tactile_deploy.calibration.wizard.station import Station
 
 
 class StepError(RuntimeError):

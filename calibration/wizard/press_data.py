@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.fem_fit.fit import MatchedContact
-from calibration.shading.press_profile import BallPressModel
-from calibration.shading.presses import PressSet
-from calibration.wizard.config import WizardConfig
-from calibration.wizard.context import StepError
-from calibration.wizard.state import WorkFolder
-from calibration.wizard.station import Ball
-from calibration.wizard.work_data import load_camera, load_npz, load_reference
+from tactile_deploy.calibration.fem_fit.fit import MatchedContact
+from tactile_deploy.calibration.shading.press_profile import BallPressModel
+from tactile_deploy.calibration.shading.presses import PressSet
+from tactile_deploy.calibration.wizard.config import WizardConfig
+from tactile_deploy.calibration.wizard.context import StepError
+from tactile_deploy.calibration.wizard.state import WorkFolder
+from tactile_deploy.calibration.wizard.station import Ball
+from tactile_deploy.calibration.wizard.work_data import load_camera, load_npz, load_reference
 from tactile_deploy.imaging.shading import load_shading
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.runtime.pipeline import ImagingPipeline
@@ -27,7 +27,7 @@ def grid_px(grid, xy_mm) -> np.ndarray:
 
 
 def press_set(work: WorkFolder):
-    """The kept presses of ``work`` as a :class:`~calibration.shading.presses.PressSet`, and the
+    """The kept presses of ``work`` as a :class:`~tactile_deploy.calibration.shading.presses.PressSet`, and the
     arrays of ``presses.npz``."""
     d = load_npz(work, "presses.npz")
     keep = d["keep"]
@@ -39,7 +39,7 @@ def press_set(work: WorkFolder):
 
 def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii: float,
                    depth_offset_mm: float = 0.0, nu: float | None = None) -> list:
-    """FEM depth profiles (:class:`~calibration.shading.press_profile.PressProfile`) of the
+    """FEM depth profiles (:class:`~tactile_deploy.calibration.shading.press_profile.PressProfile`) of the
     kept presses, out to ``reach_radii`` contact radii: the ball on the family's pad at the rig's
     contact (sensor frame) pressed its intrusion plus ``depth_offset_mm`` (the rig's zero
     offset, once the FEM step has fitted it), or, for hand presses, at the circle's centre and
@@ -66,7 +66,7 @@ def press_profiles(config: WizardConfig, presses_npz: dict, camera, reach_radii:
 
 
 def contacts_from_work(work: WorkFolder, config: WizardConfig) -> list:
-    """The kept ball presses of a work folder as :class:`~calibration.fem_fit.fit.MatchedContact`:
+    """The kept ball presses of a work folder as :class:`~tactile_deploy.calibration.fem_fit.fit.MatchedContact`:
     depth maps on the model grid from its shading model, the rig's contact (sensor frame, read
     back) and force when a rig pressed them (else None: estimated from the map / unknown)."""
     d = load_npz(work, "presses.npz")

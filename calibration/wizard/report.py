@@ -8,7 +8,7 @@ import math
 import shutil
 from pathlib import Path
 
-from calibration.wizard.state import STEP_TITLES, STEPS
+from tactile_deploy.calibration.wizard.state import STEP_TITLES, STEPS
 from tactile_deploy.atomic import write_json, write_text
 
 

@@ -1,7 +1,7 @@
 """The calibration station: a camera, an optional indentation rig, and the person at the bench.
 
 * :class:`CameraStation`: any frame source of the runtime (a live camera, a video, a folder of
-  images) and, optionally, an :class:`~calibration.rig.IndentationRig` on serial ports. Without
+  images) and, optionally, an :class:`~tactile_deploy.calibration.rig.IndentationRig` on serial ports. Without
   a rig the person presses the ball by hand when asked.
 * :class:`VirtualStation`: a virtual sensor (``--source virtual:NAME``). With ``--rig
   simulated`` a simulated rig runs on two pseudo-terminals in this process and the wizard drives
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.rig import IndentationRig, RigConfig
+from tactile_deploy.calibration.rig import IndentationRig, RigConfig
 from tactile_deploy.indenters import ContactPose
 
 
@@ -139,7 +139,7 @@ class VirtualStation(Station):
     """A virtual sensor, pressed by a simulated rig over pseudo-terminals or by a simulated hand.
 
     sensor_name : a shipped virtual sensor (``tactile-deploy sensors list``).
-    simulated_rig : run a :class:`~calibration.rig.simulated.SimulatedRig` whose stage carries
+    simulated_rig : run a :class:`~tactile_deploy.calibration.rig.simulated.SimulatedRig` whose stage carries
         the mounted tool; ``rig_overrides`` are :class:`RigConfig` fields (dicts for ``stage`` and
         ``gauge``) applied to the config the wizard connects with.
     """
@@ -162,7 +162,7 @@ class VirtualStation(Station):
         self._indenters: dict = {}
         self.sim = None
         if simulated_rig:
-            from calibration.rig.simulated import SimulatedRig
+            from tactile_deploy.calibration.rig.simulated import SimulatedRig
 
             self.sim = SimulatedRig(self._force_n)
             self.sim.start()

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.fem_fit.result import FemResult
-from calibration.shading.readout_finetune import finetune_unit_readout
-from calibration.shading.readout_gain import readout_depth_gain
-from calibration.wizard.config import WizardConfig
-from calibration.wizard.context import StepError
-from calibration.wizard.press_data import press_profiles
+from tactile_deploy.calibration.fem_fit.result import FemResult
+from tactile_deploy.calibration.shading.readout_finetune import finetune_unit_readout
+from tactile_deploy.calibration.shading.readout_gain import readout_depth_gain
+from tactile_deploy.calibration.wizard.config import WizardConfig
+from tactile_deploy.calibration.wizard.context import StepError
+from tactile_deploy.calibration.wizard.press_data import press_profiles
 from tactile_deploy.imaging.learned_readout import LearnedReadout
 from tactile_deploy.runtime.pipeline import ImagingPipeline
 
@@ -21,7 +21,7 @@ def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_
                                 presses_npz: dict, material: FemResult, out: Path, unit: str,
                                 log=None):
     """The design's ``readout`` fine-tuned on the kept presses of ``presses_npz`` and the
-    no-contact ``ref_frames`` (:mod:`calibration.shading.readout_finetune`; targets: the
+    no-contact ``ref_frames`` (:mod:`tactile_deploy.calibration.shading.readout_finetune`; targets: the
     presses' FEM depth profiles at the rig's intrusion plus the FEM step's zero offset, with its
     nu), ``config.readout_steps`` steps, written to ``out``: ``(LearnedReadout of it, a line for
     the provenance)``."""
@@ -46,7 +46,7 @@ def finetune_readout_on_presses(config: WizardConfig, camera, shading, ref, ref_
 def readout_gain(camera, shading, ref, noise, readout, d,
                  material: FemResult) -> tuple[float, str]:
     """The unit's depth gain of the learned read-out from the rig's presses
-    (:mod:`calibration.shading.readout_gain`), and a line for the provenance."""
+    (:mod:`tactile_deploy.calibration.shading.readout_gain`), and a line for the provenance."""
     tips = d["tip_mm"]
     use = d["keep"] & np.all(np.isfinite(tips), axis=1)
     what = f"{readout.path.name} (design {readout.metadata.get('design', '?')})"

@@ -3,7 +3,7 @@
     tactile-deploy calibrate --sensor NEW [--source SRC] [--rig PORT --gauge PORT | --rig simulated]
         [--config wizard.json] [--out DIR] [--work DIR] [--yes] [--redo STEP] [--restart]
 
-Data flow of :func:`run_wizard` (each step in :mod:`calibration.wizard.steps`)::
+Data flow of :func:`run_wizard` (each step in :mod:`tactile_deploy.calibration.wizard.steps`)::
 
     reference frame -> camera mapping + imaging grid -> ball presses + contact circles
         -> shading model (cross-validated) -> FEM material (optional) -> plugin folder + report
@@ -19,9 +19,9 @@ import re
 import shutil
 from pathlib import Path
 
-from calibration.wizard.config import WizardConfig, wizard_config_from_dict
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.state import (
+from tactile_deploy.calibration.wizard.config import WizardConfig, wizard_config_from_dict
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.state import (
     STEP_TITLES,
     STEPS,
     WizardState,
@@ -29,8 +29,8 @@ from calibration.wizard.state import (
     WorkFolder,
     now_iso,
 )
-from calibration.wizard.station import Station, StationError
-from calibration.wizard.steps import STEP_FUNCTIONS
+from tactile_deploy.calibration.wizard.station import Station, StationError
+from tactile_deploy.calibration.wizard.steps import STEP_FUNCTIONS
 
 #: Exit codes: done, bad input or a failed step, stopped by the person (resumable).
 EXIT_OK, EXIT_ERROR, EXIT_STOPPED = 0, 1, 130
@@ -50,8 +50,8 @@ def default_work_folder(out: Path) -> Path:
 def open_station(source: str, rig: str | None, gauge: str | None,
                  config: WizardConfig) -> Station:
     """The station for ``--source``, ``--rig`` and ``--gauge`` (see the module docstring)."""
-    from calibration.rig import RigConfigError, load_rig_config, rig_config_from_dict
-    from calibration.wizard.station import CameraStation, VirtualStation
+    from tactile_deploy.calibration.rig import RigConfigError, load_rig_config, rig_config_from_dict
+    from tactile_deploy.calibration.wizard.station import CameraStation, VirtualStation
     from tactile_deploy.runtime.sources.config import (
         SourceSpecError,
         VirtualSourceConfig,
@@ -108,7 +108,7 @@ def open_station(source: str, rig: str | None, gauge: str | None,
 def _open_station(source: str, rig: str | None, gauge: str | None,
                   config: WizardConfig) -> Station:
     """:func:`open_station`; a source or rig that cannot be opened is a :class:`WizardError`."""
-    from calibration.rig import RigError
+    from tactile_deploy.calibration.rig import RigError
     from tactile_deploy.runtime.sources.base import SourceError
 
     try:

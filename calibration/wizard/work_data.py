@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibration.wizard.context import StepError
-from calibration.wizard.state import WorkFolder
+from tactile_deploy.calibration.wizard.context import StepError
+from tactile_deploy.calibration.wizard.state import WorkFolder
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.imaging.camera_mapping import load_mapping
 from tactile_deploy.runtime.pipeline import Rectifier, rectify_frame, resample_to_grid

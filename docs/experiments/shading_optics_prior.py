@@ -117,7 +117,7 @@ class RenderedPrior:
 def table_prior(make_prior, prior_weight: float):
     """While inside, the shading fit's table takes ``make_prior(fallback)`` as its prior, at
     ``prior_weight`` samples (``fallback``: the prior the fit made, the colour polynomial)."""
-    from calibration.shading import fit
+    from tactile_deploy.calibration.shading import fit
 
     original = fit.fit_table
 
@@ -242,9 +242,9 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
 
     from shading_sample_read import wizard_data
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import PressSet
-    from calibration.shading.virtual_check import near_contact_errors
+    from tactile_deploy.calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.presses import PressSet
+    from tactile_deploy.calibration.shading.virtual_check import near_contact_errors
     from tactile_deploy.runtime.pipeline import (
         ImagingPipeline,
         apply_noise_reference,

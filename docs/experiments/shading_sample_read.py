@@ -41,10 +41,10 @@ def wizard_data(cache: Path) -> dict:
             return pickle.load(f)
 
     from bench.bench_shading import VIRTUAL_SENSOR, VIRTUAL_WIZARD, run_virtual_wizard
-    from calibration.shading.virtual_check import virtual_ball_presses
-    from calibration.wizard.config import wizard_config_from_dict
-    from calibration.wizard.config import shading_fit_config
-    from calibration.wizard.press_data import press_profiles
+    from tactile_deploy.calibration.shading.virtual_check import virtual_ball_presses
+    from tactile_deploy.calibration.wizard.config import wizard_config_from_dict
+    from tactile_deploy.calibration.wizard.config import shading_fit_config
+    from tactile_deploy.calibration.wizard.press_data import press_profiles
     from tactile_deploy.sensors import load_sensor
 
     config = wizard_config_from_dict(dict(VIRTUAL_WIZARD), "bench_shading.VIRTUAL_WIZARD")
@@ -126,8 +126,8 @@ def fit_at(data: dict, s: int, per_sample: bool, prior_weight: float | None = No
     (``per_sample``; targets at the samples) or per cell (colours averaged)."""
     from dataclasses import replace
 
-    from calibration.shading.fit import fit_shading
-    from calibration.shading.presses import PressSet
+    from tactile_deploy.calibration.shading.fit import fit_shading
+    from tactile_deploy.calibration.shading.presses import PressSet
     from tactile_deploy.runtime.pipeline import (
         Rectifier,
         rectify_frame,
@@ -173,7 +173,7 @@ def oracle_errors(data: dict, s: int, per_sample: bool) -> dict:
     """True surface gradients (area-averaged onto the ``s x s`` samples, central differences)
     averaged per cell (``per_sample``) or taken per cell from the cell-averaged surface,
     integrated with the isotropic solver, resampled to the model grid."""
-    from calibration.shading.virtual_check import near_contact_errors
+    from tactile_deploy.calibration.shading.virtual_check import near_contact_errors
     from tactile_deploy.imaging.camera_mapping import OutputGrid
     from tactile_deploy.imaging.poisson import poisson_solver
     from tactile_deploy.runtime.pipeline import GridResampler
@@ -198,7 +198,7 @@ def oracle_errors(data: dict, s: int, per_sample: bool) -> dict:
 
 
 def main(argv=None) -> None:
-    from calibration.shading.virtual_check import near_contact_errors
+    from tactile_deploy.calibration.shading.virtual_check import near_contact_errors
     from tactile_deploy.runtime.pipeline import ImagingPipeline
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -94,7 +94,7 @@ def load_card(folder: str | os.PathLike) -> AdaptationCard:
     path = Path(folder) / CARD_FILE
     if not path.is_file():
         raise CardError(f"{path} not found: an adaptation step folder holds {CARD_FILE}, {STEP_FILE} and "
-                        f"{FILTER_FILE}; export one with `python -m training export-adapt --bundle MODEL.pt`")
+                        f"{FILTER_FILE}; export one with `python -m tactile_deploy.training export-adapt --bundle MODEL.pt`")
     doc = read_json(path, CardError, "a JSON step card")
     if not isinstance(doc, dict) or doc.get("format_version") != CARD_FORMAT:
         got = doc.get("format_version") if isinstance(doc, dict) else type(doc).__name__

@@ -97,7 +97,7 @@ class StepProgram:
             raise CardError(
                 f"the adaptation step {self.folder} was exported for the family model with sha256 "
                 f"{expected[:16]}..., but {model_path} has {actual[:16]}...; export the step for this model "
-                "(python -m training export-adapt --bundle MODEL.pt --onnx MODEL.onnx)")
+                "(python -m tactile_deploy.training export-adapt --bundle MODEL.pt --onnx MODEL.onnx)")
 
     def trainable(self) -> list:
         params = dict(self.module.named_parameters())

@@ -1,6 +1,6 @@
 """Fine-tune a design's learned read-out on one unit's presses of known depth.
 
-The read-out of a design (``python -m training.shading_net``) is trained on virtual units within
+The read-out of a design (``python -m tactile_deploy.training.shading_net``) is trained on virtual units within
 assembly tolerances; a built unit differs from all of them. The calibration wizard knows the depth of its own rig
 presses (the ball's cap at the rig's intrusion plus its zero offset, the pad's FEM response
 around it), so it can continue the design's network on them: the same network, loss and
@@ -10,7 +10,7 @@ contract and where it came from in the metadata.
 
 Data flow: :func:`network_from_onnx` (the base's weights) -> :func:`finetune_network` ->
 :func:`~tactile_deploy.learning.readout_network.export_onnx`. The calibration side (targets,
-features, the plugin file) is ``calibration.shading.readout_finetune``.
+features, the plugin file) is ``tactile_deploy.calibration.shading.readout_finetune``.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def network_from_onnx(path: str | Path):
     state = {i.name.removeprefix("net."): torch.from_numpy(numpy_helper.to_array(i).copy())
              for i in model.graph.initializer if i.name.startswith("net.")}
     if "e1.0.weight" not in state:
-        raise ValueError(f"{path}: not a read-out exported by training.shading_net (no "
+        raise ValueError(f"{path}: not a read-out exported by tactile_deploy.training.shading_net (no "
                          f"initializer 'net.e1.0.weight')")
     net = ReadoutNet(int(state["e1.0.weight"].shape[0]))
     try:

@@ -108,7 +108,7 @@ def check_model_contract(model_path, expected_mesh_hash: str | None, n_nodes: in
             raise ModelContractError(
                 f"{where}: metadata {key!r} must be {value!r} (what this version of "
                 f"tactile-deploy reads), the model has {meta.get(key)!r}; export the model again "
-                "with this version (python -m training export)")
+                "with this version (python -m tactile_deploy.training export)")
     if n_nodes is not None and meta.get("n_nodes") != str(n_nodes):
         raise ModelContractError(f"{where}: metadata 'n_nodes' must be '{n_nodes}' (the pad's "
                                  f"node count), the model has {meta.get('n_nodes')!r}")

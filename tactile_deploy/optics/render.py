@@ -519,7 +519,7 @@ def shade_points(model: OpticsModel, uv_px: np.ndarray, xy_mm: np.ndarray, z_mm:
     from the model's texture). Returns (k, 3) float64 grey levels (no blur, noise or rounding).
     One light at a time, nothing precomputed: the equations of the module docstring as written.
     Used by the tests as the second method, by the benchmark as the baseline, and by the
-    optics fit (:mod:`calibration.optics_fit`).
+    optics fit (:mod:`tactile_deploy.calibration.optics_fit`).
     """
     gain, diffuse, specular = shading_basis(model, uv_px, xy_mm, z_mm, fx, fy, albedo)
     colours = np.array([lt.colour_grey for lt in model.lights], float)

@@ -7,7 +7,7 @@
   degrees and millimetres off with other brightnesses, another lens and camera placement, more
   noise, a 0.03 mm zero offset of the pressing axis, a 0.8 degree mounting tilt and LED drift.
 * ``gelsight_fots``: a GelSight-class sensor of a different character, its optics fitted to real
-  ball presses (``python -m calibration.optics_fit``): portrait 240 x 320 px at 19.58 px/mm,
+  ball presses (``python -m tactile_deploy.calibration.optics_fit``): portrait 240 x 320 px at 19.58 px/mm,
   directional lights, a domed gel and over-exposure.
 
 :func:`list_sensors` names them, :func:`sensor_config` reads one, :func:`load_sensor` builds a

@@ -20,7 +20,7 @@ As a frame source the sensor follows the LeRobot camera pattern: ``connect()`` /
 sequence (:class:`PressScript`), optionally paced to the wall clock; :meth:`VirtualSensor.frames`
 is the same as a generator of ``(timestamp_s, frame)``; :meth:`record_reference` averages
 no-contact frames. The recordings the calibrations take as input (FOTS-style ball presses, a
-pressed pin grid) are made by :mod:`calibration.virtual_recordings`.
+pressed pin grid) are made by :mod:`tactile_deploy.calibration.virtual_recordings`.
 
 Frames are RGB (H, W, 3) uint8 in raw camera pixels; poses and points are in the sensor frame
 (mm, origin at the centre of the sensing surface, z out of the gel).

@@ -29,7 +29,7 @@ metadata            () str                  JSON: units, frame, image geometry, 
 value to 11 significant bits, a relative error of at most 2^-11 (0.049 %), i.e. at most 0.25 um
 below 1 mm and 0.49 um between 1 and 2 mm (the pad takes at most 1.5 mm), against RMS model
 errors of ~10 um; shards are about half the size. "float32" stores them exactly. Readers cast to
-float32 (:func:`training.data.load_dataset_dir`).
+float32 (:func:`tactile_deploy.training.data.load_dataset_dir`).
 
 Shard ``i`` draws its contacts from ``numpy.random.default_rng([seed, i])``, so a dataset is
 reproduced exactly by its seed whatever the number of workers or interruptions; a killed run

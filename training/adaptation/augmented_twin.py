@@ -1,6 +1,6 @@
 """The augmented twin of a trained model, for the ablation (docs/adaptation.md, Table 2a).
 
-    python -m training.adaptation.augmented_twin --bundle exported/gelslim_mesh.pt \
+    python -m tactile_deploy.training.adaptation.augmented_twin --bundle exported/gelslim_mesh.pt \
         --config training/configs/cpu_adapt_aug.json --out out/predictor/shipped_aug \
         [--projection-epochs 4] [--image-epochs 0]
 
@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from training import distributed
-from training.config import StageConfig, TrainConfig
-from training.data import load, split_by_contact
-from training.train import (
+from tactile_deploy.training import distributed
+from tactile_deploy.training.config import StageConfig, TrainConfig
+from tactile_deploy.training.data import load, split_by_contact
+from tactile_deploy.training.train import (
     BUNDLE_FORMAT,
     _augmentation,
     _freeze,
@@ -98,7 +98,7 @@ def make_twin(bundle_path: Path, cfg: TrainConfig, out: Path, projection: StageC
     k = min(n_eval, len(val_data))
     held = val_data.subset(np.arange(k))
     rng = torch.Generator().manual_seed(12345)
-    from training.augment import Augmenter
+    from tactile_deploy.training.augment import Augmenter
 
     aug = Augmenter(cfg.augmentation, cfg.model.image.resolution)
     held_aug = type(held)(aug(torch.as_tensor(held.depth_mm[:, None]), rng)[:, 0].numpy(), held.displacement_mm,
@@ -137,7 +137,7 @@ def make_twin(bundle_path: Path, cfg: TrainConfig, out: Path, projection: StageC
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m training.adaptation.augmented_twin", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.adaptation.augmented_twin", description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", type=Path, default=Path("exported/gelslim_mesh.pt"))
     ap.add_argument("--config", type=Path, default=Path("training/configs/cpu_adapt_aug.json"),
                     help="its data and augmentation sections are used")
@@ -153,8 +153,8 @@ def main(argv=None) -> int:
                         kl_weight=cfg.image_vae.kl_weight) if args.image_epochs > 0 else None
     metrics = make_twin(args.bundle, cfg, args.out, proj, image)
     if args.export:
-        from training.adaptation.export import export_step
-        from training.export import export_run
+        from tactile_deploy.training.adaptation.export import export_step
+        from tactile_deploy.training.export import export_run
 
         onnx = args.out / "gelslim_mesh.onnx"
         export_run(args.out, onnx, overwrite=True)  # the run was just trained again in --out
@@ -164,6 +164,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from training.errors import run_command
+    from tactile_deploy.training.errors import run_command
 
     raise SystemExit(run_command(main))

@@ -1,6 +1,6 @@
 """What separates a sensor's depth maps from the simulator's: measured on the virtual sensors.
 
-For every press of a virtual domain (:mod:`training.adaptation.domains`) the plugin's depth map
+For every press of a virtual domain (:mod:`tactile_deploy.training.adaptation.domains`) the plugin's depth map
 ``est`` is compared with the clean simulated depth map ``true`` of the same contact, inside the
 sensor's view:
 
@@ -12,10 +12,10 @@ sensor's view:
 * **view**: the share of the true contact's volume (positive depth) outside the camera's view
   (the depth map is 0 there).
 
-    python -m training.adaptation.domain_gap --domains gelslim1 gelslim2 [--work out/adapt/domains]
+    python -m tactile_deploy.training.adaptation.domain_gap --domains gelslim1 gelslim2 [--work out/adapt/domains]
 
 prints a markdown table (docs/adaptation.md) of the 10th, 50th and 90th percentiles, which set
-the ranges of :class:`training.config.AugmentationConfig`.
+the ranges of :class:`tactile_deploy.training.config.AugmentationConfig`.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def table(results: dict[str, dict[str, np.ndarray]]) -> str:
 
 
 def main(argv=None) -> int:
-    from training.adaptation.domains import load_or_make
+    from tactile_deploy.training.adaptation.domains import load_or_make
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--domains", nargs="+", default=["gelslim1", "gelslim2"])
@@ -104,6 +104,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from training.errors import run_command
+    from tactile_deploy.training.errors import run_command
 
     raise SystemExit(run_command(main))

@@ -17,7 +17,7 @@ them.
   ``../shared/data/indenters``, shapes the model never saw.
 * ``real-balls``: the 42 real GelSight ball presses of ``../shared/data/real``, through a plugin
   calibrated on them (shading model of the same presses, its crop camera mapping; built by
-  ``python -m calibration.shading.real_gelsight``); no truth (:func:`real_ball_domain`).
+  ``python -m tactile_deploy.calibration.shading.real_gelsight``); no truth (:func:`real_ball_domain`).
 
 Domains are cached as ``.npz`` (:func:`load_or_make`); everything is seeded.
 """
@@ -112,8 +112,8 @@ def view_weight(plugin) -> np.ndarray:
 
 def sim_domain(n: int, seed: int, indenters="primitive") -> Domain:
     """``n`` simulated contacts (the training data's distribution, other seed): clean depth."""
-    from training.config import SyntheticData
-    from training.data import generate
+    from tactile_deploy.training.config import SyntheticData
+    from tactile_deploy.training.data import generate
 
     spec = SyntheticData(n_samples=n, seed=seed, indenters=indenters, radius_max_mm=12.0,
                          depth_min_mm=0.2, depth_max_mm=1.2)
@@ -187,7 +187,7 @@ REAL_PLUGIN_FOLDER = "fots-gelsight"
 
 def real_ball_domain(work: Path) -> Domain:
     """The 42 real ball presses as depth maps (no truth), through the plugin calibrated on them
-    in ``work/fots-gelsight`` (:func:`calibration.shading.real_gelsight.real_gelsight_plugin`
+    in ``work/fots-gelsight`` (:func:`tactile_deploy.calibration.shading.real_gelsight.real_gelsight_plugin`
     builds it; its demo clip holds the presses)."""
     from tactile_deploy.runtime.pipeline import ImagingPipeline
     from tactile_deploy.runtime.plugins import PluginError, SensorPlugin
@@ -198,7 +198,7 @@ def real_ball_domain(work: Path) -> Domain:
         plugin = SensorPlugin.load(folder)
     except PluginError as e:
         raise FileNotFoundError(f"{e}; build the plugin of the real ball presses first: python -m "
-                                f"calibration.shading.real_gelsight --out {folder}") from None
+                                f"tactile_deploy.calibration.shading.real_gelsight --out {folder}") from None
     pipe = ImagingPipeline.from_plugin(plugin)
     depth = []
     with open_clip(plugin.demo_clip_path(), name="the real ball presses") as clip:

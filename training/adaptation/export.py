@@ -1,6 +1,6 @@
 """Export the adaptation step of a trained bundle for the runtime.
 
-    python -m training export-adapt --bundle exported/gelslim_mesh.pt \
+    python -m tactile_deploy.training export-adapt --bundle exported/gelslim_mesh.pt \
         [--onnx exported/gelslim_mesh.onnx] [--out exported/gelslim_mesh_adapt] [--filter vae]
 
 Data flow of :func:`export_step`::
@@ -39,8 +39,8 @@ from tactile_deploy.adapt.card import (
     ParameterMapping,
     render_markdown,
 )
-from training.adaptation.step import AdaptationStep, VAEFilter
-from training.errors import UsageError
+from tactile_deploy.training.adaptation.step import AdaptationStep, VAEFilter
+from tactile_deploy.training.errors import UsageError
 
 DEFAULTS = {"lr": 1e-4, "batch_size": 16.0, "steps": 200.0}
 
@@ -62,7 +62,7 @@ def fp32_graph_of(family_onnx: Path) -> Path:
     model = onnx.load(str(family_onnx))
     if any(n.op_type in ("QuantizeLinear", "DequantizeLinear") for n in model.graph.node):
         raise UsageError(f"{family_onnx} is quantised and its fp32 graph {twin} is missing; export the "
-                         "model again (python -m training export) or pass --fp32")
+                         "model again (python -m tactile_deploy.training export) or pass --fp32")
     return family_onnx
 
 
@@ -95,7 +95,7 @@ def map_parameters(step: AdaptationStep, fp32_model) -> list[ParameterMapping]:
         if found is None:
             raise UsageError(f"no initializer of the fp32 graph holds parameter {name!r} {p.shape}: the ONNX "
                              "graph was not exported from this bundle; give the --onnx (and --fp32) exported from "
-                             "it (python -m training export --run RUN), or its --bundle")
+                             "it (python -m tactile_deploy.training export --run RUN), or its --bundle")
         out.append(found)
     return out
 
@@ -134,7 +134,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
     import shutil
 
     from tactile_deploy.atomic import replace_folder
-    from training.train import load_bundle
+    from tactile_deploy.training.train import load_bundle
 
     bundle, family_onnx, out = Path(bundle), Path(family_onnx), Path(out)
     if bundle.is_dir():
@@ -142,7 +142,7 @@ def export_step(bundle: str | Path, family_onnx: str | Path, out: str | Path, fi
     for option, path in (("--onnx", family_onnx), ("--fp32", fp32_onnx)):
         if path is not None and not Path(path).is_file():
             raise UsageError(f"{option} {path}: no such file; give the graph exported from the bundle "
-                             "(python -m training export --run RUN)")
+                             "(python -m tactile_deploy.training export --run RUN)")
     if out.exists() and not (out.is_dir() and ((out / CARD_FILE).is_file() or not any(out.iterdir()))):
         raise UsageError(f"--out {out} exists and is not an adaptation step folder (no {CARD_FILE}), so it is not "
                          "replaced: choose another --out")
@@ -168,7 +168,7 @@ def _write_step(model, meta, bundle: Path, family_onnx: Path, fp32: Path, out: P
     from tactile_deploy.adapt.step import StepProgram
     from tactile_deploy.adapt.weights import write_adapted_onnx
     from tactile_deploy.atomic import atomic_path, write_json, write_text
-    from training.export import OPSET, _onnx_export, int8_nodes, run_session
+    from tactile_deploy.training.export import OPSET, _onnx_export, int8_nodes, run_session
 
     t0 = time.perf_counter()
     torch.manual_seed(0)
@@ -300,7 +300,7 @@ def _write_step(model, meta, bundle: Path, family_onnx: Path, fp32: Path, out: P
 def main(argv=None) -> int:
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m training export-adapt", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training export-adapt", description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", required=True, help="training bundle (model.pt, or its run folder)")
     ap.add_argument("--onnx", default="exported/gelslim_mesh.onnx",
                     help="the family model exported from it (default: %(default)s, relative to the current folder)")

@@ -1,6 +1,6 @@
 """Figures of docs/adaptation.md.
 
-    python -m training.adaptation.figures augmentation [--domain gelslim1] [--out docs/img/adapt_augmentation.png]
+    python -m tactile_deploy.training.adaptation.figures augmentation [--domain gelslim1] [--out docs/img/adapt_augmentation.png]
 
 ``augmentation``: presses of a virtual sensor; per row the clean simulated depth map of the
 contact, what the sensor's plugin makes of its camera frame, and three augmentations of the
@@ -26,8 +26,8 @@ def augmentation_figure(domain, out: Path, config: Path, n: int = 5, seed: int =
     import torch
 
     from tactile_deploy.atomic import atomic_path
-    from training.augment import Augmenter
-    from training.config import TrainConfig
+    from tactile_deploy.training.augment import Augmenter
+    from tactile_deploy.training.config import TrainConfig
 
     cfg = TrainConfig.load(config).augmentation
     aug = Augmenter(cfg.model_copy(update={"probability": 1.0}))
@@ -59,7 +59,7 @@ def augmentation_figure(domain, out: Path, config: Path, n: int = 5, seed: int =
 
 
 def main(argv=None) -> int:
-    from training.adaptation.domains import load_or_make
+    from tactile_deploy.training.adaptation.domains import load_or_make
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("figure", choices=["augmentation"])
@@ -74,6 +74,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from training.errors import run_command
+    from tactile_deploy.training.errors import run_command
 
     raise SystemExit(run_command(main))

@@ -10,7 +10,7 @@ barycentric interpolation of their z, with weights from their deformed xy positi
 Method, in two passes:
 
 1. *which triangle each pixel centre sees* (no gradient): the rules and the watertight edge
-   functions of :class:`training.simulation.depth_torch.TriangleRasterizer` (edge functions
+   functions of :class:`tactile_deploy.training.simulation.depth_torch.TriangleRasterizer` (edge functions
    always evaluated from the lower-index vertex of an edge, as integer pixel steps from a fixed
    reference pixel plus a precomputed offset, so that neighbouring triangles agree exactly on
    shared edges), the lowest covering triangle winning;
@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.simulation.depth_torch import RestTables, deformed_triangles
+from tactile_deploy.training.simulation.depth_torch import RestTables, deformed_triangles
 from tactile_deploy.raster import EDGE_TOLERANCE_MM
 
 #: Pixels each triangle visits (see module docstring).

@@ -1,6 +1,6 @@
 """The self-supervised adaptation step (paper, "Self-Supervised Adaptation") as torch modules.
 
-Data flow of :meth:`AdaptationStep.forward` (train mode; the module :mod:`training.adaptation.export`
+Data flow of :meth:`AdaptationStep.forward` (train mode; the module :mod:`tactile_deploy.training.adaptation.export`
 captures with ``torch.export``)::
 
     depth (B, 1, 128, 128) mm   (a sensor's depth map I, model grid)
@@ -24,8 +24,8 @@ import copy
 import torch
 from torch import nn
 
-from training.adaptation.render import DEFAULT_PIXELS_PER_TRIANGLE, DepthRenderer
-from training.networks.predictor import Predictor
+from tactile_deploy.training.adaptation.render import DEFAULT_PIXELS_PER_TRIANGLE, DepthRenderer
+from tactile_deploy.training.networks.predictor import Predictor
 
 #: Parameter prefixes the step updates: image encoder (convolutions, FC, mean head) and projection.
 TRAINABLE_PREFIXES = ("convs.", "fc.", "mu.", "projection.")

@@ -20,7 +20,7 @@ import math
 import torch
 from torch import nn
 
-from training.networks.coarsening import Resampling
+from tactile_deploy.training.networks.coarsening import Resampling
 
 
 def _exporting() -> bool:

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.config import GridDecoderConfig
+from tactile_deploy.training.config import GridDecoderConfig
 
 
 def pixel_of_points(xy_mm: np.ndarray, grid: int, half_extent_mm: float) -> np.ndarray:

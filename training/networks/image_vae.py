@@ -6,7 +6,7 @@ it (FC 128, FC to 512 x 4 x 4, five stride-2 transposed convolutions back to 1 x
 Loss: ``MSE(I, I^) + lambda_I KL(q(z|I) || N(0, 1))`` (see :func:`vae_loss` for the reductions).
 
 Inputs are depth maps normalised by ``depth_scale_mm`` (done by the caller, see
-:mod:`training.networks.predictor`), image layout (B, 1, H, W), row 0 = largest y.
+:mod:`tactile_deploy.training.networks.predictor`), image layout (B, 1, H, W), row 0 = largest y.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from training.config import ImageVAEConfig, LeanImageDecoderConfig
+from tactile_deploy.training.config import ImageVAEConfig, LeanImageDecoderConfig
 
 _ACT = {"elu": nn.ELU, "relu": nn.ReLU}
 

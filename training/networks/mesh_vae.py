@@ -1,6 +1,6 @@
 """Volumetric mesh VAE after COMA (Ranjan et al. 2018), on the layered tet graph of the pad.
 
-Encoder (levels 0 -> 4 of :class:`~training.networks.coarsening.Hierarchy`): at level l a
+Encoder (levels 0 -> 4 of :class:`~tactile_deploy.training.networks.coarsening.Hierarchy`): at level l a
 Chebyshev convolution (order ``cheb_k[l]``) to ``channels[l]`` features, ReLU, down-sampling to
 level l + 1; then fully connected heads to the latent mean and log-variance (128 each).
 Decoder (mirror): FC from the latent to level 4 x channels[-1] (no activation, like COMA), then
@@ -9,7 +9,7 @@ level 0), activation except after the last.
 
 Features 16, 16, 16, 32 with K = 6 and 4x down-sampling per level are the paper's sizes.
 The VAE works on **normalised displacements** (displacement / per-axis scale, see
-:mod:`training.networks.predictor`), node-major ``(n, B, 3)`` inside, ``(B, n, 3)`` outside.
+:mod:`tactile_deploy.training.networks.predictor`), node-major ``(n, B, 3)`` inside, ``(B, n, 3)`` outside.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from training.config import MeshVAEConfig
-from training.networks.coarsening import Hierarchy
-from training.networks.graph import ChebConv, SparseMap
+from tactile_deploy.training.config import MeshVAEConfig
+from tactile_deploy.training.networks.coarsening import Hierarchy
+from tactile_deploy.training.networks.graph import ChebConv, SparseMap
 
 
 class MeshGraphs(nn.Module):
@@ -102,7 +102,7 @@ class MeshVAE(nn.Module):
         self.decoder = MeshDecoder(cfg, self.graphs)
 
     def forward(self, x: torch.Tensor, sample: bool = True):
-        from training.networks.image_vae import reparameterise
+        from tactile_deploy.training.networks.image_vae import reparameterise
 
         mu, logvar = self.encoder(x)
         z = reparameterise(mu, logvar) if sample else mu

@@ -20,11 +20,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.config import ModelConfig, ProjectionConfig
-from training.networks.coarsening import Hierarchy
-from training.networks.grid_decoder import GridDecoder
-from training.networks.image_vae import _ACT, ImageVAE, LeanImageDecoder
-from training.networks.mesh_vae import MeshVAE
+from tactile_deploy.training.config import ModelConfig, ProjectionConfig
+from tactile_deploy.training.networks.coarsening import Hierarchy
+from tactile_deploy.training.networks.grid_decoder import GridDecoder
+from tactile_deploy.training.networks.image_vae import _ACT, ImageVAE, LeanImageDecoder
+from tactile_deploy.training.networks.mesh_vae import MeshVAE
 
 
 class LatentProjection(nn.Module):

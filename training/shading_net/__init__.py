@@ -2,5 +2,5 @@
 convolutional network from colour to depth, and its ONNX export
 (:mod:`tactile_deploy.imaging.learned_readout` runs it).
 
-    python -m training.shading_net --design gelslim1 --out exported/gelslim_readout.onnx --overwrite
+    python -m tactile_deploy.training.shading_net --design gelslim1 --out exported/gelslim_readout.onnx --overwrite
 """

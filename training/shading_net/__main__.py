@@ -1,8 +1,8 @@
-"""``python -m training.shading_net``: see :mod:`training.shading_net.train`."""
+"""``python -m tactile_deploy.training.shading_net``: see :mod:`tactile_deploy.training.shading_net.train`."""
 
 import sys
 
-from training.errors import run_command
+from tactile_deploy.training.errors import run_command
 
 from .train import main
 

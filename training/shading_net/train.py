@@ -1,6 +1,6 @@
 """Train the read-out network of a design and export it (ONNX + model card).
 
-    python -m training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
+    python -m tactile_deploy.training.shading_net --design gelslim1 --units 8 --presses 1000 --epochs 60 \
         --out exported/gelslim_readout.onnx --overwrite
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
@@ -87,8 +87,8 @@ def _cache_spec(args) -> dict:
 
 
 def _check_args(args) -> None:
-    """Check every option before any work (:class:`training.errors.UsageError`)."""
-    from training.errors import UsageError
+    """Check every option before any work (:class:`tactile_deploy.training.errors.UsageError`)."""
+    from tactile_deploy.training.errors import UsageError
 
     for option, value, low in (("--units", args.units, 1), ("--presses", args.presses, 1), ("--epochs", args.epochs, 1),
                                ("--width", args.width, 1), ("--seed", args.seed, 0)):
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     from .data import DEPTH_RANGE_MM, RADII_MM, unit_presses
     from .family import Tolerances, family_configs
 
-    ap = argparse.ArgumentParser(prog="python -m training.shading_net", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.shading_net", description=__doc__.splitlines()[0])
     ap.add_argument("--design", default="gelslim1",
                     help="virtual sensor whose design the units share (default: %(default)s)")
     ap.add_argument("--units", type=int, default=8, help="virtual units of the design (default: %(default)s)")
@@ -205,7 +205,7 @@ def main(argv=None) -> int:
 
     card = {
         "model": args.out.name,
-        "command": "python -m training.shading_net " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m tactile_deploy.training.shading_net " + " ".join(sys.argv[1:] if argv is None else argv),
         "sha256": hashlib.sha256(args.out.read_bytes()).hexdigest(),
         "what": "learned read-out: rectified camera frame features -> depth (mm) on the imaging grid "
                 "(tactile_deploy/imaging/learned_readout.py describes the inputs and outputs)",

@@ -5,7 +5,7 @@ Data flow of :meth:`BatchedContactSimulator.solve` for B contacts::
     indenter index + pose (B,)  --(envelope grids, bilinear, float64)-->  delta (B, n_plane) mm
         --(exact contact on the surface compliance C, batched active sets)-->  forces (B, k, b) N
         --(one GEMM with the Green's functions G)-->  displacements (B, n, 3) mm
-        --(batched rasteriser, training.simulation.depth_torch)-->  depth (B, 128, 128) mm
+        --(batched rasteriser, tactile_deploy.training.simulation.depth_torch)-->  depth (B, 128, 128) mm
 
 Every step solves the same equations as :class:`tactile_deploy.fem.simulator.ContactSimulator`
 (``method="surface"``), which stays the reference: same intrusion, same candidate nodes, the same
@@ -721,9 +721,9 @@ class BatchedContactSimulator:
 
     @property
     def camera(self):
-        """The :class:`~training.simulation.depth_torch.TorchDepthCamera` (built on first use)."""
+        """The :class:`~tactile_deploy.training.simulation.depth_torch.TorchDepthCamera` (built on first use)."""
         if self._torch_camera is None:
-            from training.simulation.depth_torch import TorchDepthCamera
+            from tactile_deploy.training.simulation.depth_torch import TorchDepthCamera
 
             self._torch_camera = TorchDepthCamera(self.mesh, self._camera_arg, self.device,
                                                   self.dtype)

@@ -7,14 +7,14 @@ import dataclasses
 
 import numpy as np
 
-from calibration.camera.charuco import CharucoBoardSpec, calibrate_charuco, load_board_spec
-from calibration.camera.dots import calibrate_dots
-from calibration.camera.figure import plot_fit
-from calibration.camera.fitting import CalibrationError
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.figures import crop_figure
-from calibration.wizard.station import PinPlate, rig_press_frames
-from calibration.wizard.work_data import load_reference, mean_frame
+from tactile_deploy.calibration.camera.charuco import CharucoBoardSpec, calibrate_charuco, load_board_spec
+from tactile_deploy.calibration.camera.dots import calibrate_dots
+from tactile_deploy.calibration.camera.figure import plot_fit
+from tactile_deploy.calibration.camera.fitting import CalibrationError
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.figures import crop_figure
+from tactile_deploy.calibration.wizard.station import PinPlate, rig_press_frames
+from tactile_deploy.calibration.wizard.work_data import load_reference, mean_frame
 from tactile_deploy.atomic import write_npz
 from tactile_deploy.imaging.camera_mapping import crop_camera_mapping, save_mapping
 from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid

@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 
-from calibration.fem_fit.fit import fit_fem_parameters, render_contact
-from calibration.fem_fit.operator_bank import OperatorBank
-from calibration.fem_fit.result import FemResult, write_fem_result
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.figures import fem_figure
-from calibration.wizard.press_data import contacts_from_work
+from tactile_deploy.calibration.fem_fit.fit import fit_fem_parameters, render_contact
+from tactile_deploy.calibration.fem_fit.operator_bank import OperatorBank
+from tactile_deploy.calibration.fem_fit.result import FemResult, write_fem_result
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.figures import fem_figure
+from tactile_deploy.calibration.wizard.press_data import contacts_from_work
 from tactile_deploy.camera.depth import DepthCamera
 from tactile_deploy.indenters import get_indenter
 from tactile_deploy.pad.asset import load_pad

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.fem_fit.result import FemResultError, read_fem_result
-from calibration.shading.readout_finetune import FinetuneUnavailable
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.figures import plugin_figure
-from calibration.wizard.report import write_report
-from calibration.wizard.unit_readout import finetune_readout_on_presses, readout_gain
-from calibration.wizard.work_data import load_camera, load_npz, load_reference, write_png
+from tactile_deploy.calibration.fem_fit.result import FemResultError, read_fem_result
+from tactile_deploy.calibration.shading.readout_finetune import FinetuneUnavailable
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.figures import plugin_figure
+from tactile_deploy.calibration.wizard.report import write_report
+from tactile_deploy.calibration.wizard.unit_readout import finetune_readout_on_presses, readout_gain
+from tactile_deploy.calibration.wizard.work_data import load_camera, load_npz, load_reference, write_png
 from tactile_deploy.atomic import replace_folder
 from tactile_deploy.imaging.learned_readout import LearnedReadout, ReadoutError
 from tactile_deploy.imaging.shading import load_shading
@@ -45,7 +45,7 @@ def step_plugin(ctx: Context) -> Outcome:
     model = Path(ctx.model_path or ctx.config.model or default_model())
     if not model.is_file():
         raise StepError(f"the family model {model} does not exist: pass --model PATH (an ONNX "
-                        "model exported by `python -m training export`)")
+                        "model exported by `python -m tactile_deploy.training export`)")
     tmp = (out.parent / f".{out.name}.partial-{os.getpid()}").resolve()
     if tmp.exists():
         shutil.rmtree(tmp)

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.shading.circles import ContactNotFoundError, detect_contact_circle
-from calibration.shading.presses import PressDataError, read_annotations
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.figures import circles_figure
-from calibration.wizard.press_data import grid_px
-from calibration.wizard.station import Ball, rig_press_frames
-from calibration.wizard.work_data import (
+from tactile_deploy.calibration.shading.circles import ContactNotFoundError, detect_contact_circle
+from tactile_deploy.calibration.shading.presses import PressDataError, read_annotations
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.figures import circles_figure
+from tactile_deploy.calibration.wizard.press_data import grid_px
+from tactile_deploy.calibration.wizard.station import Ball, rig_press_frames
+from tactile_deploy.calibration.wizard.work_data import (
     load_camera,
     load_npz,
     load_reference,

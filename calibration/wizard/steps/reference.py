@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.wizard.context import Context, Outcome
-from calibration.wizard.figures import reference_figure
-from calibration.wizard.work_data import mean_frame, write_png
+from tactile_deploy.calibration.wizard.context import Context, Outcome
+from tactile_deploy.calibration.wizard.figures import reference_figure
+from tactile_deploy.calibration.wizard.work_data import mean_frame, write_png
 from tactile_deploy.atomic import write_npz
 
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.shading.evaluate import cross_validate, fit_sphere, summarise
-from calibration.shading.fit import fit_shading
-from calibration.wizard.config import shading_fit_config
-from calibration.wizard.context import Context, Outcome, StepError
-from calibration.wizard.figures import cross_validation_figure, shading_figure
-from calibration.wizard.press_data import press_profiles, press_set
-from calibration.wizard.work_data import load_camera
+from tactile_deploy.calibration.shading.evaluate import cross_validate, fit_sphere, summarise
+from tactile_deploy.calibration.shading.fit import fit_shading
+from tactile_deploy.calibration.wizard.config import shading_fit_config
+from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
+from tactile_deploy.calibration.wizard.figures import cross_validation_figure, shading_figure
+from tactile_deploy.calibration.wizard.press_data import press_profiles, press_set
+from tactile_deploy.calibration.wizard.work_data import load_camera
 from tactile_deploy.imaging.shading import DepthFromShading, save_shading
 
 
