@@ -71,8 +71,8 @@ _register_entry_points()
 #: Import name of an optional library -> the extra that installs it (pyproject.toml).
 EXTRA_OF = {
     "matplotlib": "figures", "questionary": "calibrate", "serial": "calibrate", "warp": "sim",
-    "gmsh": "sim", "torch": "adapt", "onnx": "adapt", "onnxscript": "train", "mcap": "ros",
-    "rosbags": "ros", "rerun": "view",
+    "torch": "adapt", "onnx": "adapt", "onnxscript": "train", "mcap": "ros", "rosbags": "ros",
+    "rerun": "view",
 }
 
 
