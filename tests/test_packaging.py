@@ -337,3 +337,35 @@ def test_adapt_refuses_a_plugin_inside_the_installed_package(monkeypatch, tmp_pa
     _refuse_installed_plugin(SimpleNamespace(name="gelslim2", origin="path", folder=tmp_path / "gelslim2"))
     monkeypatch.setattr(shipped, "installed", lambda: False)
     _refuse_installed_plugin(SimpleNamespace(name="gelslim2", origin="shipped", folder=folder))
+
+
+def test_the_extra_named_for_each_library_installs_it():
+    """Each library the missing-extra message knows is brought by the extra it names (its
+    distribution among the extra's requirements, with the extras it includes), and by no base
+    dependency (else a missing one is a broken install, not an install choice)."""
+    import re
+    import tomllib
+    from importlib.metadata import packages_distributions
+
+    from tactile_deploy.cli.main import EXTRA_OF
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
+
+    def names(requirements) -> set[str]:
+        return {re.split(r"[<>=!~\[; ]", r, maxsplit=1)[0].lower().replace("_", "-") for r in requirements}
+
+    def closure(extra: str) -> set[str]:
+        out = set()
+        for req in extras[extra]:
+            included = re.fullmatch(r"tactile-deploy\[(.+)\]", req)
+            out |= set().union(*(closure(e) for e in included.group(1).split(","))) if included else names([req])
+        return out
+
+    base = names(project["dependencies"])
+    providers = packages_distributions()
+    for module, extra in EXTRA_OF.items():
+        dists = {d.lower().replace("_", "-") for d in providers.get(module, [])}
+        assert dists, f"{module}: not installed here (the dev extra installs every extra)"
+        assert dists & closure(extra), f"{module} ({dists}) is not in the extra {extra!r}: {sorted(closure(extra))}"
+        assert not dists & base, f"{module} ({dists}) is a base dependency, not an extra's"
