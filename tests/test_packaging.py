@@ -275,6 +275,11 @@ def test_run_json_records_the_tool_model_and_plugin(tmp_path):
     def sha256(path) -> str:
         return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
+    def plugin_metadata(plugin) -> dict:
+        onnx = pytest.importorskip("onnx")
+        graph = onnx.load(str(plugin.verified_path("model")), load_external_data=False)
+        return {p.key: p.value for p in graph.metadata_props}
+
     folder = tmp_path / "testsensor"
     plugin = build_test_plugin(folder, n_frames=3)
     frames, _, _ = load_clip(plugin.demo_clip_path())
@@ -295,6 +300,7 @@ def test_run_json_records_the_tool_model_and_plugin(tmp_path):
     assert tool["libraries"]["onnxruntime"] == version("onnxruntime")
     model = own["model"]
     assert model["adapted_version"] is None
+    assert model["format"] == plugin_metadata(plugin)["format"] and model["format"].startswith("tactile-deploy.")
     assert Path(model["path"]) == plugin.verified_path("model").resolve()
     assert model["sha256"] == sha256(model["path"]) == plugin.manifest.model.sha256
     assert own["plugin"] == {"name": "testsensor", "folder": str(folder.resolve()), "origin": plugin.origin,
@@ -313,6 +319,28 @@ def test_run_json_records_the_tool_model_and_plugin(tmp_path):
     assert adapted["adapted_version"] == 1
     assert Path(adapted["path"]) == (folder / "adapted" / "v1" / "model.onnx").resolve()
     assert adapted["sha256"] == sha256(adapted["path"]) != model["sha256"]
+
+    # meshes made without a model file (a lift of the depth map through the pad's FEM): model
+    # null, the tool and the plugin recorded all the same
+    from types import SimpleNamespace
+
+    from tactile_deploy.runtime.provenance import run_provenance
+
+    lift = run_provenance(SimpleNamespace(model_path=Path("physics lift of pad gelslim_v1"), plugin=plugin))
+    assert lift["model"] is None and lift["plugin"] == own["plugin"] and lift["tool"] == own["tool"]
+    RunRecord.model_validate({**own, **lift})
+
+
+def test_model_record_reads_the_training_commit_from_the_metadata(tmp_path):
+    from tactile_deploy.runtime.provenance import model_record
+
+    path = tmp_path / "m.onnx"
+    path.write_bytes(b"not a graph: only its sha256 is read")
+    rec = model_record(path, metadata={"format": "tactile-deploy.predictor/1", "training_commit": "9aa5d54",
+                                       "training_dirty": "true"})
+    assert (rec.format, rec.training_commit, rec.adapted_version) == ("tactile-deploy.predictor/1",
+                                                                      "9aa5d54 (dirty)", None)
+    assert model_record(path).format is None and model_record(path).training_commit is None
 
 
 def test_adapt_refuses_a_plugin_inside_the_installed_package(monkeypatch, tmp_path, capsys):

@@ -18,9 +18,10 @@ def tool_record() -> ToolRecord:
                       libraries=library_versions())
 
 
-def model_record(model_path: str | Path, plugin=None) -> ModelRecord:
-    """The ONNX model a predictor loaded; ``adapted_version`` when it is the plugin's active
-    adapted version (``tactile-deploy adapt``)."""
+def model_record(model_path: str | Path, plugin=None, metadata: dict | None = None) -> ModelRecord:
+    """The ONNX model a predictor loaded, with its contract format and training commit from its
+    ``metadata`` (the ONNX metadata properties); ``adapted_version`` when it is the plugin's
+    active adapted version (``tactile-deploy adapt``)."""
     path = Path(model_path).resolve()
     version = None
     if plugin is not None:
@@ -30,7 +31,12 @@ def model_record(model_path: str | Path, plugin=None) -> ModelRecord:
             rec = None
         if rec is not None and (plugin.folder / rec.model).resolve() == path:
             version = rec.version
-    return ModelRecord(path=str(path), sha256=file_sha256(path), adapted_version=version)
+    metadata = metadata or {}
+    commit = metadata.get("training_commit")
+    if commit and metadata.get("training_dirty") == "true":
+        commit += " (dirty)"
+    return ModelRecord(path=str(path), sha256=file_sha256(path), format=metadata.get("format"),
+                       training_commit=commit or None, adapted_version=version)
 
 
 def plugin_record(plugin) -> PluginRecord:
@@ -43,8 +49,15 @@ def plugin_record(plugin) -> PluginRecord:
 
 def run_provenance(predictor) -> dict:
     """``tool``, ``model`` and ``plugin`` of a run of ``predictor`` (a
-    :class:`~tactile_deploy.runtime.predictor.MeshPredictor`), as JSON-ready dicts."""
+    :class:`~tactile_deploy.runtime.predictor.MeshPredictor`, or any predictor with a
+    ``model_path`` and a ``plugin``), as JSON-ready dicts; ``model`` is None when the predictor
+    reads no model file."""
     plugin = getattr(predictor, "plugin", None)
+    model_path = getattr(predictor, "model_path", None)
+    model = None
+    if model_path is not None and Path(model_path).is_file():
+        metadata = getattr(predictor, "metadata", None)
+        model = model_record(model_path, plugin, metadata if isinstance(metadata, dict) else None)
     return {"tool": tool_record().model_dump(mode="json"),
-            "model": model_record(predictor.model_path, plugin).model_dump(mode="json"),
+            "model": None if model is None else model.model_dump(mode="json"),
             "plugin": None if plugin is None else plugin_record(plugin).model_dump(mode="json")}

@@ -29,6 +29,10 @@ class ModelRecord(StrictModel):
 
     path: str = Field(description="Absolute path of the model file.")
     sha256: str = Field(pattern="^[0-9a-f]{64}$", description="sha256 of the model file.")
+    format: str | None = Field(description="The model contract's format and version from the model's "
+                               "metadata (docs/onnx_contract.md), or null when it has none.")
+    training_commit: str | None = Field(description="Commit of the training code that made the model "
+                                        "(' (dirty)' when it had local changes), from its metadata, or null.")
     adapted_version: int | None = Field(description="The plugin's adapted version this model is "
                                         "(tactile-deploy adapt), or null for the plugin's own model.")
 
@@ -72,6 +76,7 @@ class RunRecord(StrictModel):
     sinks: dict[str, dict[str, Any]] = Field(description="What each output sink did.")
     source_settings: dict[str, Any] = Field(description="What the source asked for and got.")
     tool: ToolRecord = Field(description="The tactile-deploy that ran.")
-    model: ModelRecord = Field(description="The ONNX model that made the meshes.")
+    model: ModelRecord | None = Field(description="The ONNX model that made the meshes (null when no model "
+                                      "file made them, e.g. a lift of the depth map through the pad's FEM).")
     plugin: PluginRecord | None = Field(description="The sensor plugin (null for a predictor without one).")
     finished: str = Field(description="Local date and time the run ended (ISO 8601).")
