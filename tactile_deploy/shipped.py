@@ -2,8 +2,12 @@
 
 - Assets of the package (pad meshes, virtual-sensor configs, committed JSON Schemas) are package
   data of :mod:`tactile_deploy`, found through :mod:`importlib.resources`.
-- The shipped sensor plugins (``plugins/``) and exported models (``exported/``) sit beside the
-  package in a source checkout or an editable install.
+- The shipped sensor plugins and exported models are folders of the installed package,
+  ``tactile_deploy/plugins/`` and ``tactile_deploy/exported/`` (the wheel maps the repository's
+  ``plugins/`` and ``exported/`` there, see setup.py). In a source checkout (and an editable
+  install of one) they are the repository's ``plugins/`` and ``exported/`` beside the package.
+  Both layouts keep the two folders side by side, so a plugin's relative model path
+  (``../../exported/gelslim_mesh.onnx``) resolves in either.
 
 Every path returned is a real folder or file on disk (tactile-deploy is not run from a zip
 archive).
@@ -13,6 +17,10 @@ from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
+
+#: The shipped data folders, by name in both layouts.
+PLUGINS = "plugins"
+MODELS = "exported"
 
 
 def package_root() -> Path:
@@ -24,6 +32,19 @@ def package_root() -> Path:
     return root
 
 
+def installed() -> bool:
+    """True when the shipped plugins and models are inside the installed package (a wheel
+    install), False in a source checkout."""
+    return (package_root() / PLUGINS).is_dir()
+
+
+def shipped_root() -> Path:
+    """The folder holding ``plugins/`` and ``exported/``: the package itself when installed from
+    a wheel, else the source checkout's root."""
+    root = package_root()
+    return root if installed() else root.parent
+
+
 def asset_dir(kind: str) -> Path:
     """Folder of the shipped assets of one kind: ``"pads"`` (meshes and their cards) or
     ``"sensors"`` (virtual-sensor configs)."""
@@ -32,12 +53,12 @@ def asset_dir(kind: str) -> Path:
 
 def plugins_dir() -> Path:
     """Folder of the shipped sensor plugins (one sub-folder per plugin)."""
-    return package_root().parent / "plugins"
+    return shipped_root() / PLUGINS
 
 
 def models_dir() -> Path:
     """Folder of the exported models (ONNX graphs, adaptation steps, their model cards)."""
-    return package_root().parent / "exported"
+    return shipped_root() / MODELS
 
 
 def model_path(name: str) -> Path:

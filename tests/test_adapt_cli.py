@@ -134,7 +134,7 @@ def test_device_benchmark_runs_with_only_torch_numpy_onnx_onnxruntime_pydantic(t
     """bench/bench_adapt_device.py (the GPU machine's script) in a process where every other
     library of the project cannot be imported."""
     blocked = ["trimesh", "warp", "cv2", "typer", "rich", "questionary", "matplotlib", "meshio", "zmq", "serial",
-               "pexpect", "training", "scipy"]
+               "pexpect", "tactile_deploy.training", "scipy"]
     script = textwrap.dedent(f"""
         import runpy, sys
         for m in {blocked!r}:

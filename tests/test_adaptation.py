@@ -319,14 +319,14 @@ def test_program_moves_to_another_device_whole(tiny):
 
 def test_runtime_adapts_without_the_training_package(tiny, tmp_path):
     """Load the step, filter, run Adam steps and write the adapted ONNX model in a process where
-    importing ``training`` fails."""
+    importing ``tactile_deploy.training`` fails."""
     import subprocess
     import sys
     import textwrap
 
     script = textwrap.dedent(f"""
         import sys
-        sys.modules["training"] = None
+        sys.modules["tactile_deploy.training"] = None
         import numpy as np
         import torch
         torch.set_num_threads(1)
@@ -338,7 +338,7 @@ def test_runtime_adapts_without_the_training_package(tiny, tmp_path):
         target = vae_filter(step, depth)
         hist = adapt(step, depth, target, np.ones((128, 128), np.float32), AdaptSettings(steps=2, batch_size=4))
         write_adapted_onnx(step.card, step.card.path(step.folder, "fp32_model"), step.weights(), {str(tmp_path / "a.onnx")!r})
-        assert not any(k.split(".")[0] == "training" for k in sys.modules if sys.modules[k] is not None)
+        assert not any(k.startswith("tactile_deploy.training") for k in sys.modules if sys.modules[k] is not None)
         print("ok", len(hist.loss_mm2))
         """)
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)

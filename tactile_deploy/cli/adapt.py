@@ -10,6 +10,17 @@ import typer
 from tactile_deploy.cli.common import console, err_console, fail
 
 
+def _refuse_installed_plugin(plugin) -> None:
+    """Adapted versions are written into the plugin's folder: not into an installed package
+    (a wheel's shipped plugins), where the next upgrade or uninstall would lose them."""
+    from tactile_deploy.shipped import installed, plugins_dir
+
+    if plugin.origin == "shipped" and installed() and plugin.folder.resolve().is_relative_to(plugins_dir().resolve()):
+        fail(f"plugin {plugin.name!r} is shipped inside the installed package ({plugin.folder}), where adapted "
+             f"versions would be lost at the next upgrade; adapt a copy of it: tactile-deploy plugins copy "
+             f"{plugin.name} ./{plugin.name} && tactile-deploy adapt --sensor ./{plugin.name} ...")
+
+
 def adapt_command(
     sensor: str = typer.Option("gelslim2", "--sensor", help="Sensor plugin name or folder (`tactile-deploy plugins list`)."),
     frames: Path | None = typer.Option(None, "--frames", help="Folder of the sensor's camera frames (images)."),
@@ -58,6 +69,8 @@ def adapt_command(
         fail(f"plugin {plugin.name!r} has no learned model to adapt (pad "
              f"{plugin.manifest.family.pad}): its meshes come from the pad's physics lift, which "
              "reads the depth map directly; nothing to adapt")
+    if not dry_run:
+        _refuse_installed_plugin(plugin)
     if rollback or activate is not None:
         _switch_version(plugin, rollback, activate, dry_run)
         return

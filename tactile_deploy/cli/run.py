@@ -16,9 +16,7 @@ from tactile_deploy.cli.common import console, err_console, fail
 def _ask(question: str) -> bool:
     if not (sys.stdin.isatty() and sys.stdout.isatty()):
         return False
-    import questionary
-
-    return bool(questionary.confirm(question, default=False).ask())
+    return typer.confirm(question, default=False)
 
 
 def run_command(

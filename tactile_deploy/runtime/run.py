@@ -356,7 +356,8 @@ class Runner:
         if self.opt.out_dir is not None:
             from tactile_deploy.atomic import finite_or_null, write_json
 
-            doc = finite_or_null({**asdict(s), "finished": _dt.datetime.now().isoformat(timespec="seconds")})
+            doc = finite_or_null({**asdict(s), **self._provenance(),
+                                  "finished": _dt.datetime.now().isoformat(timespec="seconds")})
             try:
                 doc = RunRecord.model_validate(doc).model_dump(mode="json")
             except ValidationError as e:  # a defect: keep the summary all the same
@@ -365,6 +366,17 @@ class Runner:
                 write_json(self.opt.out_dir / "run.json", doc)
             except OSError as e:
                 log.error("could not write the run summary into %s: %s", self.opt.out_dir, e)
+
+    def _provenance(self) -> dict:
+        """run.json's tool, model and plugin (versions and sha256); a failure is logged and
+        leaves them out (the run's summary is written all the same)."""
+        from tactile_deploy.runtime.provenance import run_provenance
+
+        try:
+            return run_provenance(self.predictor)
+        except (OSError, ValueError, AttributeError) as e:
+            log.error("could not record the tool, model and plugin of the run: %s", e)
+            return {}
 
     def step(self, frame, due_ns: int | None = None) -> None:
         """Process one :class:`~tactile_deploy.runtime.sources.base.Frame`; ``due_ns``: when a

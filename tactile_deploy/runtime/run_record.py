@@ -1,6 +1,8 @@
 """``run.json``: what a ``tactile-deploy run`` did, written when the run ends.
 
 Counts are frames; times in ms (``wall_s`` in s); rates in frames per second; forces in N.
+``tool``, ``model`` and ``plugin`` say what produced the meshes, with versions and sha256
+(:mod:`tactile_deploy.runtime.provenance`).
 """
 
 from __future__ import annotations
@@ -10,6 +12,40 @@ from typing import Any
 from pydantic import Field
 
 from tactile_deploy.fileformat import StrictModel
+
+
+class ToolRecord(StrictModel):
+    """The tactile-deploy install that ran (:mod:`tactile_deploy.version`)."""
+
+    name: str = Field(description="Distribution name.")
+    version: str = Field(description="Installed version ('unknown' when not installed).")
+    code_sha256: str = Field(pattern="^[0-9a-f]{64}$", description="sha256 over the runtime's Python "
+                             "sources (path and sha256 of each file), the same for a wheel and a checkout.")
+    libraries: dict[str, str] = Field(description="Python and library versions (onnxruntime, numpy, OpenCV).")
+
+
+class ModelRecord(StrictModel):
+    """The ONNX model that turned depth maps into meshes."""
+
+    path: str = Field(description="Absolute path of the model file.")
+    sha256: str = Field(pattern="^[0-9a-f]{64}$", description="sha256 of the model file.")
+    format: str | None = Field(description="The model contract's format and version from the model's "
+                               "metadata (docs/onnx_contract.md), or null when it has none.")
+    training_commit: str | None = Field(description="Commit of the training code that made the model "
+                                        "(' (dirty)' when it had local changes), from its metadata, or null.")
+    adapted_version: int | None = Field(description="The plugin's adapted version this model is "
+                                        "(tactile-deploy adapt), or null for the plugin's own model.")
+
+
+class PluginRecord(StrictModel):
+    """The sensor plugin of the run."""
+
+    name: str = Field(description="Plugin name.")
+    folder: str = Field(description="Absolute path of the plugin folder.")
+    origin: str = Field(description="How it was found: shipped, path, plugins dir, entry point.")
+    format_version: int = Field(description="plugin.json format version.")
+    manifest_sha256: str = Field(pattern="^[0-9a-f]{64}$", description="sha256 of plugin.json, which "
+                                 "holds the sha256 of every file of the plugin.")
 
 
 class RunRecord(StrictModel):
@@ -39,4 +75,8 @@ class RunRecord(StrictModel):
     stopped_by: str = Field(description="What ended the run.")
     sinks: dict[str, dict[str, Any]] = Field(description="What each output sink did.")
     source_settings: dict[str, Any] = Field(description="What the source asked for and got.")
+    tool: ToolRecord = Field(description="The tactile-deploy that ran.")
+    model: ModelRecord | None = Field(description="The ONNX model that made the meshes (null when no model "
+                                      "file made them, e.g. a lift of the depth map through the pad's FEM).")
+    plugin: PluginRecord | None = Field(description="The sensor plugin (null for a predictor without one).")
     finished: str = Field(description="Local date and time the run ended (ISO 8601).")
