@@ -121,3 +121,21 @@ def test_export_volume_and_surface_round_trip(pad, tmp_path):
     with pytest.raises(ValueError, match="format"):
         export_volume(pad, tmp_path / "pad.xyz")
     assert not list(tmp_path.glob(".*partial*"))  # nothing half-written left behind
+
+
+def test_exported_glb_is_in_metres_and_y_up_as_gltf_says(pad, tmp_path):
+    """glTF: metres, +y up. Read back by trimesh (its glTF loader, not our writer), the pad's
+    sensing face (sensor z = 0, the top) must be the highest y, and the 35 mm disc must span
+    0.035 in x and in z."""
+    import trimesh
+
+    from tactile_deploy.pad.export import export_surface
+
+    export_surface(pad, tmp_path / "pad.glb")
+    scene = trimesh.load(tmp_path / "pad.glb")
+    back = scene.dump(concatenate=True) if isinstance(scene, trimesh.Scene) else scene
+    lo, hi = back.bounds
+    np.testing.assert_allclose(hi - lo, [0.035, 0.003, 0.035], atol=2e-4)
+    top_mm = pad.vertices[:, 2].max()
+    np.testing.assert_allclose(hi[1], top_mm * 1e-3, atol=1e-9)
+    np.testing.assert_allclose(lo[1], pad.vertices[:, 2].min() * 1e-3, atol=1e-9)

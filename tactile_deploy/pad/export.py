@@ -6,7 +6,8 @@
 * surface: STL, PLY, OBJ, GLB, ... through trimesh (the boundary triangles, outward normals),
   with per-vertex displacement magnitude as colour where the format keeps colours.
 
-All files are written atomically. Sensor frame; units mm, except GLB in metres (glTF's unit).
+All files are written atomically. Sensor frame; units mm, except GLB: metres in glTF's axes (y up),
+the same as the runtime's GLB meshes (tactile_deploy.runtime.writers).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def export_surface(
     mesh: PadMesh, path: str | os.PathLike, vertices_mm: np.ndarray | None = None
 ) -> Path:
     """Write the boundary surface (deformed when ``vertices_mm`` is given) with trimesh: mm,
-    sensor frame, except GLB, whose unit is the metre (glTF)."""
+    sensor frame, except GLB: metres in glTF's axes, y up ((x, y, z) of the sensor frame ->
+    (x, z, -y)), as the runtime writes its GLB meshes."""
     import trimesh
 
     path = Path(path)
@@ -60,8 +62,13 @@ def export_surface(
     points = mesh.vertices if vertices_mm is None else np.asarray(vertices_mm, dtype=np.float64)
     if points.shape != mesh.vertices.shape:
         raise ValueError(f"vertices_mm must have shape {mesh.vertices.shape}, got {points.shape}")
-    scale = 1e-3 if path.suffix.lower() == ".glb" else 1.0
-    surface = trimesh.Trimesh(points * scale, mesh.boundary_faces, process=False)
+    if path.suffix.lower() == ".glb":
+        from tactile_deploy.runtime.writers import SENSOR_TO_GLTF
+
+        written = 1e-3 * points @ SENSOR_TO_GLTF.T
+    else:
+        written = points
+    surface = trimesh.Trimesh(written, mesh.boundary_faces, process=False)
     magnitude = np.linalg.norm(points - mesh.vertices, axis=1)
     if magnitude.max() > 0:
         import matplotlib
