@@ -20,6 +20,11 @@ import numpy as np
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.pad.mesh import PadMesh
 
+#: Rotation from the sensor frame (z out of the gel) to glTF's axes (y up, right-handed):
+#: a -90 degree turn about x, (x, y, z) -> (x, z, -y). GLB files (pad export and the runtime's
+#: meshes) are written in these axes, in metres.
+SENSOR_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
 VOLUME_SUFFIXES = (".vtu", ".vtk", ".msh", ".inp", ".mesh")
 SURFACE_SUFFIXES = (".stl", ".ply", ".obj", ".glb", ".off")
 
@@ -63,8 +68,6 @@ def export_surface(
     if points.shape != mesh.vertices.shape:
         raise ValueError(f"vertices_mm must have shape {mesh.vertices.shape}, got {points.shape}")
     if path.suffix.lower() == ".glb":
-        from tactile_deploy.runtime.writers import SENSOR_TO_GLTF
-
         written = 1e-3 * points @ SENSOR_TO_GLTF.T
     else:
         written = points

@@ -34,7 +34,7 @@ class MeshFile:
 def read_mesh(path: str | os.PathLike) -> MeshFile:
     """A ``mesh_<frame>.<ply|obj|glb|vtu|npz>`` file of a run, in the sensor frame, mm, with
     the pad mesh's vertex order (GLB: converted back from metres and glTF's y-up axes)."""
-    from tactile_deploy.runtime.writers import SENSOR_TO_GLTF
+    from tactile_deploy.pad.export import SENSOR_TO_GLTF
 
     path = Path(path)
     suffix = path.suffix.lower()

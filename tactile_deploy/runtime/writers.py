@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.pad.export import SENSOR_TO_GLTF
+
 from tactile_deploy.atomic import atomic_path
 from tactile_deploy.runtime.preview import colourise
 
@@ -125,9 +127,6 @@ REASON_QUEUE_FULL = "writer queue full (the disk is slower than the live sensor)
 REASON_FAILED = "writing failed (see the write error)"
 
 
-#: Rotation from the sensor frame (z out of the gel) to glTF's axes (y up, right-handed):
-#: a -90 degree turn about x, (x, y, z) -> (x, z, -y).
-SENSOR_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 class MeshWriter:
