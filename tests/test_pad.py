@@ -132,8 +132,7 @@ def test_exported_glb_is_in_metres_and_y_up_as_gltf_says(pad, tmp_path):
     from tactile_deploy.pad.export import export_surface
 
     export_surface(pad, tmp_path / "pad.glb")
-    scene = trimesh.load(tmp_path / "pad.glb")
-    back = scene.dump(concatenate=True) if isinstance(scene, trimesh.Scene) else scene
+    back = trimesh.load(tmp_path / "pad.glb", force="mesh")
     lo, hi = back.bounds
     np.testing.assert_allclose(hi - lo, [0.035, 0.003, 0.035], atol=2e-4)
     top_mm = pad.vertices[:, 2].max()
