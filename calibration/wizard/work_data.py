@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from tactile_deploy.calibration.fem_fit.result import FemResultError, read_fem_result
 from tactile_deploy.calibration.wizard.context import StepError
 from tactile_deploy.calibration.wizard.state import WorkFolder
 from tactile_deploy.atomic import atomic_path
@@ -49,6 +50,19 @@ def load_reference(work: WorkFolder) -> tuple[np.ndarray, np.ndarray]:
 def load_camera(work: WorkFolder):
 
     return load_mapping(work.path("camera_mapping.json"))
+
+
+def load_fitted_material(work: WorkFolder):
+    """The FEM step's material (``fem.json``: E in MPa, nu), with E known; :class:`StepError`
+    naming the file and field when it is missing, invalid or E could not be identified."""
+    try:
+        material = read_fem_result(work.path("fem.json"))
+    except FemResultError as e:
+        raise StepError(str(e)) from None
+    if material.E_mpa is None:
+        raise StepError(f"{work.path('fem.json')}: field 'E_mpa' is null (E not identifiable); "
+                        "redo the FEM step, which falls back to the prior E")
+    return material
 
 
 def rectifier_for(camera):

@@ -20,10 +20,9 @@ from __future__ import annotations
 
 from tactile_deploy.calibration.discrepancy.collect import collect_presses, plan_contacts, save_collection
 from tactile_deploy.calibration.discrepancy.sensor_model import MODEL_FILE, SensorModelError, unit_sensor_model
-from tactile_deploy.calibration.fem_fit.result import FemResultError, read_fem_result
 from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
 from tactile_deploy.calibration.wizard.station import Ball
-from tactile_deploy.calibration.wizard.work_data import load_camera
+from tactile_deploy.calibration.wizard.work_data import load_camera, load_fitted_material
 from tactile_deploy.runtime.pipeline import ImagingPipeline
 from tactile_deploy.runtime.plugins import SensorPlugin
 from tactile_deploy.sensors.config import save_sensor_config
@@ -38,13 +37,7 @@ def step_discrepancy(ctx: Context) -> Outcome:
     if not (out / "plugin.json").is_file():
         raise StepError(f"the plugin folder {out} is missing: redo the plugin step "
                         "(--redo plugin)")
-    try:
-        material = read_fem_result(ctx.work.path("fem.json"))
-    except FemResultError as e:
-        raise StepError(str(e)) from None
-    if material.E_mpa is None:
-        raise StepError(f"{ctx.work.path('fem.json')}: field 'E_mpa' is null (E not identifiable); "
-                        "redo the FEM step, which falls back to the prior E")
+    material = load_fitted_material(ctx.work)
     try:
         model = unit_sensor_model(ctx.sensor, cfg.family, load_camera(ctx.work),
                                   material.E_mpa, material.nu)

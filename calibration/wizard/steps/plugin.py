@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile_deploy.calibration.fem_fit.result import FemResultError, read_fem_result
 from tactile_deploy.calibration.shading.readout_finetune import FinetuneUnavailable
 from tactile_deploy.calibration.wizard.context import Context, Outcome, StepError
 from tactile_deploy.calibration.wizard.figures import plugin_figure
 from tactile_deploy.calibration.wizard.report import write_report
 from tactile_deploy.calibration.wizard.unit_readout import finetune_readout_on_presses, readout_gain
-from tactile_deploy.calibration.wizard.work_data import load_camera, load_npz, load_reference, write_png
+from tactile_deploy.calibration.wizard.work_data import (load_camera, load_fitted_material, load_npz,
+                                                         load_reference, write_png)
 from tactile_deploy.atomic import replace_folder
 from tactile_deploy.imaging.learned_readout import LearnedReadout, ReadoutError
 from tactile_deploy.imaging.shading import load_shading
@@ -89,13 +89,7 @@ def _build_plugin(ctx: Context, folder: Path, model: Path):
     shutil.copyfile(ctx.work.path("shading.npz"), folder / "shading.npz")
     write_png(folder / "reference.png", ref)
     d = load_npz(ctx.work, "presses.npz")
-    try:
-        material = read_fem_result(ctx.work.path("fem.json"))
-    except FemResultError as e:
-        raise StepError(str(e)) from None
-    if material.E_mpa is None:
-        raise StepError(f"{ctx.work.path('fem.json')}: field 'E_mpa' is null (E not identifiable); "
-                        "redo the FEM step, which falls back to the prior E")
+    material = load_fitted_material(ctx.work)
     readout, tune_note = None, None
     if cfg.readout is not None:
 
