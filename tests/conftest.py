@@ -11,6 +11,29 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
+def pytest_configure(config):
+    """Command output is rendered 240 columns wide, so that long temporary paths in error messages
+    are not folded mid-name. With several xdist workers, each worker's numerical libraries use one
+    thread: the workers already keep every core busy, and two OpenMP pools per core stall each
+    other."""
+    os.environ["COLUMNS"] = "240"
+    workers = getattr(config.option, "numprocesses", None)
+    if workers and workers != 1:
+        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(name, "1")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Modules with more tests marked ``slow`` run first, each module's tests in their own order:
+    with ``--dist loadscope`` the long modules start at once on the workers and the short ones
+    fill in behind them, instead of one long module running alone at the end."""
+    order = {}
+    for item in items:
+        weight = order.setdefault(item.module.__name__, [len(order), 0])
+        weight[1] += item.get_closest_marker("slow") is not None
+    items.sort(key=lambda it: (-order[it.module.__name__][1], order[it.module.__name__][0]))
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """``../shared/data`` beside the checkout; fails (does not skip) when it is missing."""

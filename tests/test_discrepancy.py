@@ -60,6 +60,7 @@ def setup(small_sim):
 
 
 # ----------------------------------------------------------------------- hidden effects
+@pytest.mark.slow
 @pytest.mark.parametrize("effect,seed", [
     ("zero_offset", 1), ("depth_scale", 1), ("position_offset", 1), ("tilt", 1), ("dome", 1),
     ("hyperelastic", 1), ("poisson_drift", 1), ("rotation_offset", 1), ("tilt", 2)])
@@ -118,6 +119,7 @@ def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
     assert v2.gap_after_mm <= 0.5 * v2.gap_before_mm
 
 
+@pytest.mark.slow
 def test_contacts_are_estimated_when_not_commanded(small_sim):
     sensor = make_sensor(small_sim)
     contacts = random_contacts(10, 1, radius_mm=5.5, indenters=("sphere_r4", "sphere_r6"))
@@ -275,6 +277,7 @@ def test_apply_writes_versions_and_keeps_the_previous(small_sim, tmp_path):
                      EffectSpec(name="dome", params={"height_mm": 0.1}), {}, tmp_path)
 
 
+@pytest.mark.slow
 def test_command_prints_json_writes_report_and_applies(pad_sim, tmp_path):
     from typer.testing import CliRunner
 

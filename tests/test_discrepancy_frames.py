@@ -48,6 +48,7 @@ def _run(frames_setup, effects, seed):
     return find_discrepancy(sensor, data, OPTS, tables=tables)
 
 
+@pytest.mark.slow
 def test_effect_free_frames_give_none(frames_setup):
     result = _run(frames_setup, [], 11)
     assert result.verdict.verdict == "none", result.verdict.message
@@ -60,6 +61,7 @@ def test_effect_free_frames_give_none(frames_setup):
     ("dome", {"height_mm": 0.35}, "height_mm", 0.02),
     ("pixel_scale", {"anisotropy": -0.04}, "anisotropy", 0.005),
 ])
+@pytest.mark.slow
 def test_effect_hidden_in_frames_is_named_and_recovered(frames_setup, effect, params, key, tol):
     result = _run(frames_setup, [EffectSpec(name=effect, params=params)], 12)
     v = result.verdict
@@ -113,6 +115,7 @@ def test_press_frames_equal_press_under_the_same_noise(frames_setup):
     assert not np.array_equal(shots[0], shots[1])
 
 
+@pytest.mark.slow
 def test_contacts_estimated_from_imaged_frames(frames_setup):
     """Without commanded contacts the poses are found from the imaged maps (the pipeline's own
     depth error, tens of micrometres, must not move them) and effect-free frames still give

@@ -63,6 +63,7 @@ def test_rig_collect_records_frames_commanded_contacts_and_forces(domed_unit):
     assert again.exit_code == 1 and "--overwrite" in again.output
 
 
+@pytest.mark.slow
 def test_discrepancy_names_the_dome_from_the_rigs_frames(domed_unit):
     folder, _ = domed_unit
     res = _invoke("discrepancy", "--sensor", "gelslim1", "--measured", folder / "presses.npz",

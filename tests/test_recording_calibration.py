@@ -100,6 +100,7 @@ def real_run(presses, tmp_path_factory, private_cache):
             "labels": labels}
 
 
+@pytest.mark.slow
 def test_one_command_makes_a_plugin_without_a_learned_model(real_run):
     from tactile_deploy.runtime.plugins import SensorPlugin, validate_plugin
 

@@ -343,6 +343,7 @@ def test_ctrl_c_during_training_then_resume(tiny_run, tmp_path, capsys):
     assert len(history["image_vae"]) == done + 1
 
 
+@pytest.mark.slow
 def test_export_prints_both_graphs_and_replaces_the_set_only_whole(tiny_run, tmp_path, capsys, monkeypatch):
     import tactile_deploy.training.card
     import tactile_deploy.training.export

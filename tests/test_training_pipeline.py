@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("onnxscript")
 
 
+@pytest.mark.slow
 def test_train_export_parity(tmp_path, pad):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
     from tactile_deploy.training.config import TrainConfig
@@ -96,6 +97,7 @@ def test_train_export_parity(tmp_path, pad):
     assert (out.with_suffix(".md")).read_text().startswith("# Model card")
 
 
+@pytest.mark.slow
 def test_data_parallel_run_with_time_budget_and_finetune(tmp_path):
     """Two ranks under torchrun (gloo on CPU), each simulating its own contacts: the ranks stop a
     time-budgeted stage together, run the finetune stage, and rank 0 alone writes the bundle."""

@@ -157,6 +157,7 @@ def surface_run(tmp_path_factory, pad):
     return tmp / "run", metrics
 
 
+@pytest.mark.slow
 def test_surface_train_export_parity(surface_run, pad, tmp_path):
     from tactile_deploy.onnx_runtime.contract import check_model_contract
     from tactile_deploy.onnx_runtime.session import make_session

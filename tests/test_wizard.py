@@ -238,6 +238,7 @@ def test_calibrate_fem_on_the_wizard_presses(wizard_run):
 
 
 # ------------------------------------------------------------------------------ interactive
+@pytest.mark.slow
 def test_interactive_wizard_through_a_pty(tmp_path):
     """A person at a terminal (pexpect): every step, one redo (camera), a circle corrected by
     hand, an interruption (Ctrl-C) after the shading step, and a resume that finishes."""
@@ -434,6 +435,7 @@ def test_plugin_step_with_the_learned_readout(wizard_copy):
     assert e["near"].mean() <= 20.0                           # the calibration's depth target
 
 
+@pytest.mark.slow
 def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
     """With ``readout_steps`` the plugin step continues the design's read-out on the unit's rig
     presses (their FEM depth at the rig's intrusion plus the fitted zero offset) and writes it
