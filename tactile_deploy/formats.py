@@ -20,6 +20,7 @@ from tactile_deploy.runtime.plugins.versions import AdaptationHistory
 from tactile_deploy.runtime.run_record import RunRecord
 from tactile_deploy.sensors.config import SCHEMA_PATH as VIRTUAL_SENSOR_SCHEMA
 from tactile_deploy.sensors.config import VirtualSensorConfig
+from tactile_deploy.simulation.contact_file import ContactMetadata
 from tactile_deploy.simulation.dataset import DatasetCard
 
 _HERE = Path(__file__).resolve().parent
@@ -42,6 +43,8 @@ FORMATS = {f.name: f for f in (
     Format("run summary (run.json)", RunRecord, _HERE / "runtime" / "run_record.schema.json"),
     Format("dataset card (dataset.json)", DatasetCard,
            _HERE / "simulation" / "dataset_card.schema.json"),
+    Format("simulated contact metadata (metadata in simulate --out FILE.npz)", ContactMetadata,
+           _HERE / "simulation" / "contact_metadata.schema.json"),
 )}
 
 if __name__ == "__main__":
