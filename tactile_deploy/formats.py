@@ -17,10 +17,12 @@ from tactile_deploy.imaging.shading import ShadingHeader
 from tactile_deploy.pad.asset import PadCard
 from tactile_deploy.runtime.plugins.manifest import PluginManifest
 from tactile_deploy.runtime.plugins.versions import AdaptationHistory
+from tactile_deploy.runtime.frame_file import FrameMeshMetadata
 from tactile_deploy.runtime.run_record import RunRecord
 from tactile_deploy.sensors.config import SCHEMA_PATH as VIRTUAL_SENSOR_SCHEMA
 from tactile_deploy.sensors.config import VirtualSensorConfig
-from tactile_deploy.simulation.dataset import DatasetCard
+from tactile_deploy.simulation.contact_file import ContactMetadata
+from tactile_deploy.simulation.dataset import DatasetCard, ShardMetadata
 
 _HERE = Path(__file__).resolve().parent
 
@@ -40,8 +42,14 @@ FORMATS = {f.name: f for f in (
     Format("pad asset card (pads/NAME_vN.json)", PadCard,
            _HERE / "pad" / "pad_card.schema.json"),
     Format("run summary (run.json)", RunRecord, _HERE / "runtime" / "run_record.schema.json"),
+    Format("per-frame mesh metadata (metadata in run's mesh_NNNNNN.npz)", FrameMeshMetadata,
+           _HERE / "runtime" / "frame_metadata.schema.json"),
     Format("dataset card (dataset.json)", DatasetCard,
            _HERE / "simulation" / "dataset_card.schema.json"),
+    Format("dataset shard metadata (metadata in shard_NNNNN.npz)", ShardMetadata,
+           _HERE / "simulation" / "shard_metadata.schema.json"),
+    Format("simulated contact metadata (metadata in simulate --out FILE.npz)", ContactMetadata,
+           _HERE / "simulation" / "contact_metadata.schema.json"),
 )}
 
 if __name__ == "__main__":

@@ -231,6 +231,26 @@ def test_measured_data_round_trip_and_errors(setup, tmp_path):
     back = load_measured(path)
     np.testing.assert_array_equal(back.depth_mm, data.depth_mm)
     assert back.indenter == data.indenter and back.pose(2) == data.pose(2)
+    header = back.metadata["header"]   # written by save_measured, checked by load_measured
+    assert (header.n_samples, header.n_known, header.maps) == (4, 4, ["depth"])
+    assert header.noise_mm == data.noise_mm and header.units["depth"].startswith("mm")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    # arrays changed after writing are refused, naming the file, the field and both values
+    np.savez(tmp_path / "cut.npz", **{k: (v[:3] if v.ndim and k != "header_json" else v)
+                                      for k, v in arrays.items()})
+    with pytest.raises(MeasuredDataError, match=r"cut.npz: field 'header_json.n_samples': the "
+                                                r"header says 4, the arrays hold 3"):
+        load_measured(tmp_path / "cut.npz")
+    broken = json.loads(str(arrays["header_json"]))
+    broken["maps"] = ["depth", "video"]
+    np.savez(tmp_path / "bad_header.npz", **{**arrays, "header_json": np.array(json.dumps(broken))})
+    with pytest.raises(MeasuredDataError, match=r"bad_header.npz: field 'header_json'.*\n  field "
+                                                r"'maps.1'.*got \"video\""):
+        load_measured(tmp_path / "bad_header.npz")
+    # files without a header (written by hand, or before the header) still read
+    np.savez(tmp_path / "plain.npz", **{k: v for k, v in arrays.items() if k != "header_json"})
+    assert "header" not in load_measured(tmp_path / "plain.npz").metadata
     folder = tmp_path / "folder"
     folder.mkdir()
     rows = ["indenter,x_mm,y_mm,theta_deg,depth_mm,force_n,depth_file"]

@@ -260,28 +260,28 @@ def coarse_sim():
 
 def test_neo_hookean_forces_gradient_small_strain_limit_and_patch(coarse_sim):
     from tactile_deploy.fem.elasticity import assemble_stiffness_numpy
-    from tactile_deploy.sensors.effects._neo_hookean import NeoHookeanPad
+    from tactile_deploy.fem.hyperelastic import NeoHookeanGel
 
     mesh = coarse_sim.mesh
     E, nu = 0.3, 0.48
-    pad = NeoHookeanPad(mesh.vertices, mesh.tets, E, nu)
+    pad = NeoHookeanGel(mesh.vertices, mesh.tets, E, nu)   # the one neo-Hookean model
     rng = np.random.default_rng(0)
     # Gradient of the energy (central differences).
     u = 0.05 * rng.standard_normal((mesh.n_nodes, 3))
     du = 1e-6 * rng.standard_normal(u.shape)
     fd = pad.energy(u + du) - pad.energy(u - du)
-    assert fd == pytest.approx(2.0 * np.sum(pad.internal_forces_numpy(u) * du), rel=1e-6)
+    assert fd == pytest.approx(2.0 * np.sum(pad.forces(u) * du), rel=1e-6)
     # Small strains: the locking-free linear stiffness; the rest is second order.
     K = assemble_stiffness_numpy(mesh.vertices, mesh.tets, E, nu, "nodal_pressure")
     u1 = 1e-4 * rng.standard_normal(u.shape)
-    r1 = pad.internal_forces_numpy(u1).ravel() - K @ u1.ravel()
-    r2 = pad.internal_forces_numpy(2 * u1).ravel() - K @ (2 * u1).ravel()
+    r1 = pad.forces(u1).ravel() - K @ u1.ravel()
+    r2 = pad.forces(2 * u1).ravel() - K @ (2 * u1).ravel()
     assert np.linalg.norm(r1) < 1e-3 * np.linalg.norm(K @ u1.ravel())
     assert np.linalg.norm(r2) / np.linalg.norm(r1) == pytest.approx(4.0, rel=0.01)
     # Homogeneous stretch: interior nodes in equilibrium, top-face force = P_zz * area.
     F = np.diag([1.05, 0.97, 0.9])
     X = mesh.vertices
-    f = pad.internal_forces_numpy(X @ (F - np.eye(3)).T)
+    f = pad.forces(X @ (F - np.eye(3)).T)
     interior = np.setdiff1d(np.arange(mesh.n_nodes), np.concatenate(
         [mesh.sensing_nodes, mesh.backplate_nodes, mesh.side_nodes]))
     assert np.abs(f[interior]).max() < 1e-12
@@ -297,13 +297,14 @@ def test_neo_hookean_forces_gradient_small_strain_limit_and_patch(coarse_sim):
 
 def test_neo_hookean_warp_kernels_match_numpy(coarse_sim):
     pytest.importorskip("warp", reason="warp-lang is an optional dependency of the kernels")
-    from tactile_deploy.sensors.effects._neo_hookean import NeoHookeanPad
+    from tactile_deploy.fem.hyperelastic import NeoHookeanGel
+    from tactile_deploy.fem.hyperelastic_warp import NeoHookeanForces
 
     mesh = coarse_sim.mesh
-    pad = NeoHookeanPad(mesh.vertices, mesh.tets, 1.0, 0.48)
+    forces = NeoHookeanForces(NeoHookeanGel(mesh.vertices, mesh.tets, 1.0, 0.48))
     u = 0.1 * np.random.default_rng(1).standard_normal((mesh.n_nodes, 3))
-    a = pad.internal_forces_numpy(u)
-    b = pad.internal_forces_warp(u)
+    a = forces(u, "numpy")
+    b = forces(u, "warp")
     assert np.abs(a - b).max() < 1e-12 * np.abs(a).max()
 
 
@@ -323,7 +324,7 @@ def test_hyperelastic_solution_is_in_equilibrium_and_grows_faster_than_linearly(
         # Equilibrium of the neo-Hookean pad: internal forces = contact forces (E = 1 scale).
         from tactile_deploy.sensors.effects.hyperelastic import _pad_model
 
-        f_int = sim.dofs.T.T @ _pad_model(sim).internal_forces_numpy(res.displacements_mm).ravel()
+        f_int = sim.dofs.T.T @ _pad_model(sim).gel.forces(res.displacements_mm).ravel()
         f_c = np.zeros((mesh.n_nodes, 3))
         f_c[: mesh.n_plane] = -res.contact_forces_n / sim.material.E_mpa
         f_ext = sim.dofs.T.T @ f_c.ravel()

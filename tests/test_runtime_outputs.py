@@ -15,6 +15,7 @@ from test_runtime_support import build_test_plugin
 from typer.testing import CliRunner
 
 from tactile_deploy.cli.main import app
+from tactile_deploy.runtime.frame_file import FrameFileError, load_frame_npz
 from tactile_deploy.runtime.predictor import MeshPredictor
 from tactile_deploy.runtime.sources.npz import load_clip
 
@@ -55,13 +56,13 @@ def test_format_npz_writes_one_file_per_frame_with_vertices_rest_and_depth(plugi
     topo = predictor.topology
     for i in (0, 3):
         expected = predictor.predict_frame(frames[i])
-        with np.load(out / f"mesh_{i:06d}.npz", allow_pickle=False) as z:
-            assert z["vertices"].dtype == np.float32 and z["vertices"].shape == (5380, 3)
-            assert np.allclose(z["vertices"], expected.vertices_mm, atol=1e-5)
-            assert np.array_equal(z["rest_vertices"], topo.rest_vertices_mm.astype(np.float32))
-            assert z["depth"].shape == (128, 128)
-            assert np.allclose(z["depth"], expected.depth_mm, atol=1e-6)
-            meta = json.loads(str(z["metadata"]))
+        frame_file = load_frame_npz(out / f"mesh_{i:06d}.npz")   # the format's reader
+        z, meta = frame_file.arrays, frame_file.metadata.model_dump()
+        assert z["vertices"].dtype == np.float32 and z["vertices"].shape == (5380, 3)
+        assert np.allclose(z["vertices"], expected.vertices_mm, atol=1e-5)
+        assert np.array_equal(z["rest_vertices"], topo.rest_vertices_mm.astype(np.float32))
+        assert z["depth"].shape == (128, 128)
+        assert np.allclose(z["depth"], expected.depth_mm, atol=1e-6)
         assert meta["units"] == {"vertices": "mm", "rest_vertices": "mm", "depth": "mm"}
         assert meta["frame_index"] == i and meta["mesh_hash"] == topo.mesh_hash
         assert meta["source_label"] == f"press_{i:03d}.png"
@@ -69,6 +70,20 @@ def test_format_npz_writes_one_file_per_frame_with_vertices_rest_and_depth(plugi
     # the press is really in the depth map: the deepest frame is deeper than the no-contact noise
     with np.load(out / "mesh_000001.npz") as z:
         assert z["depth"].max() > 0.05
+    # a file whose metadata or arrays break the format is refused, naming the file and field
+    with np.load(out / "mesh_000000.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    doc = json.loads(str(arrays["metadata"]))
+    bad = tmp_path / "bad.npz"
+    for change, words in (({**doc, "frame_index": -1}, ("frame_index", "-1")),
+                          ({**doc, "version": 2}, ("version", "2"))):
+        np.savez(bad, **{**arrays, "metadata": np.array(json.dumps(change))})
+        with pytest.raises(FrameFileError) as err:
+            load_frame_npz(bad)
+        assert str(bad) in str(err.value) and all(w in str(err.value) for w in words), err.value
+    np.savez(bad, **{**arrays, "depth": arrays["depth"][:64]})
+    with pytest.raises(FrameFileError, match=r"field 'depth': expected shape \(128, 128\)"):
+        load_frame_npz(bad)
 
 
 def test_frames_csv_traces_source_time_and_mesh_files_and_a_looped_recording_loses_no_mesh(

@@ -70,19 +70,36 @@ def test_shipped_plugin_is_valid_and_small(name):
 
 
 @pytest.mark.parametrize("name", SHIPPED)
-def test_shipped_plugin_was_made_by_the_wizard_from_its_config(name):
+def test_shipped_plugin_was_made_by_the_wizard_from_its_config(name, tmp_path):
     """The plugin's calibration report records the wizard run on the virtual sensor with the
     simulated rig and the committed config (rebuild with plugins/build_shipped.py after editing
     plugins/wizard/NAME.json); the model is the family's export, referenced, not copied."""
-    from tactile_deploy.calibration.wizard.config import load_wizard_config, wizard_config_from_dict
+    from tactile_deploy.calibration.wizard.config import load_wizard_config
 
     folder = _folder(name)
-    metrics = json.loads((folder / "calibration" / "metrics.json").read_text())
-    assert (metrics["source"], metrics["rig"]) == (f"virtual:{name}", "simulated")
-    assert wizard_config_from_dict(metrics["config"]) == load_wizard_config(
-        ROOT / "plugins" / "wizard" / f"{name}.json")
+    from tactile_deploy.calibration.wizard.report import load_calibration_metrics
+
+    metrics = load_calibration_metrics(folder / "calibration" / "metrics.json")  # the format's reader
+    assert (metrics.source, metrics.rig) == (f"virtual:{name}", "simulated")
+    assert metrics.config == load_wizard_config(ROOT / "plugins" / "wizard" / f"{name}.json")
     for step in ("reference", "camera", "presses", "shading", "fem", "plugin"):
-        assert metrics["steps"][step], step
+        assert metrics.steps[step], step
+    # the reader refuses what the format does not hold, naming the file, field and value
+    from tactile_deploy.calibration.wizard.report import CalibrationMetricsError
+
+    doc = json.loads((folder / "calibration" / "metrics.json").read_text())
+    for where, value, words in ((("steps", "fitting"), {}, ("steps.fitting", "reference")),
+                                (("config", "fem", "prior_nu"), 0.7, ("config.fem.prior_nu", "0.7"))):
+        bad = json.loads(json.dumps(doc))
+        inner = bad
+        for k in where[:-1]:
+            inner = inner[k]
+        inner[where[-1]] = value
+        (tmp_path / "metrics.json").write_text(json.dumps(bad))
+        with pytest.raises(CalibrationMetricsError) as err:
+            load_calibration_metrics(tmp_path / "metrics.json")
+        assert str(tmp_path / "metrics.json") in str(err.value), err.value
+        assert all(w in str(err.value) for w in words), err.value
     m = SensorPlugin.load(folder).manifest
     assert m.model.path == "../../exported/gelslim_mesh.onnx"
     assert "calibration wizard" in m.provenance["made_by"]

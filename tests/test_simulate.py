@@ -14,6 +14,7 @@ from tactile_deploy.cli.main import app
 from tactile_deploy.fem.material import Material
 from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
 from tactile_deploy.simulation.contact import ContactError, simulate_contact
+from tactile_deploy.simulation.contact_file import ContactFileError, contact_metadata, load_contact
 
 runner = CliRunner()
 MATERIAL = Material(nu=0.48)
@@ -28,27 +29,42 @@ def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
     result = run("simulate", "--indenter", "flat_punch", "--x", 2, "--y", -1, "--depth", 0.5,
                  "--model", "linear", "--out", out)
     assert result.exit_code == 0, result.output
-    with np.load(out) as d:
-        assert d["depth"].shape == (128, 128) and d["depth"].dtype == np.float32
-        assert d["vertices"].shape == (pad_sim.mesh.n_nodes, 3) and d["vertices"].dtype == np.float32
-        np.testing.assert_allclose(d["rest_vertices"], pad_sim.mesh.vertices, atol=1e-6)
-        meta = json.loads(str(d["metadata"]))
-        assert meta["mesh_hash"] == pad_sim.mesh.content_hash
-        assert meta["pose"] == {"x_mm": 2.0, "y_mm": -1.0, "theta_deg": 0.0, "depth_mm": 0.5}
-        # a flat punch pushes its whole face 0.5 mm in: the depth map is flat at 0.5 inside it
-        depth = d["depth"]
-        assert depth.max() == pytest.approx(0.5, abs=1e-4)
-        assert float(d["force_n"]) > 0
-        # the contact sits where the pose says (row 0 = largest y, x to the right)
-        rows, cols = np.nonzero(depth > 0.45)
-        x = -17.5 + (cols.mean() + 0.5) * 35 / 128
-        y = 17.5 - (rows.mean() + 0.5) * 35 / 128
-        assert x == pytest.approx(2.0, abs=0.3) and y == pytest.approx(-1.0, abs=0.3)
-        assert np.abs(depth[:20]).max() < 0.01 * 0.5  # 13 mm away the gel has moved < 1 % of d
-        assert meta["model"] == "linear" and meta["max_penetration_mm"] < 1e-5
-        assert d["stick_mask"].shape == d["contact_mask"].shape and not d["stick_mask"].any()
+    contact = load_contact(out)   # the format's reader checks the arrays and the metadata
+    d, meta = contact.arrays, contact.metadata.model_dump(mode="json", exclude_none=True)
+    assert d["depth"].shape == (128, 128) and d["depth"].dtype == np.float32
+    assert d["vertices"].shape == (pad_sim.mesh.n_nodes, 3) and d["vertices"].dtype == np.float32
+    np.testing.assert_allclose(d["rest_vertices"], pad_sim.mesh.vertices, atol=1e-6)
+    with np.load(out) as z:   # the file holds what the reader returned, nothing more
+        assert json.loads(str(z["metadata"])) == meta
+    assert meta["mesh_hash"] == pad_sim.mesh.content_hash
+    assert meta["pose"] == {"x_mm": 2.0, "y_mm": -1.0, "theta_deg": 0.0, "depth_mm": 0.5}
+    # a flat punch pushes its whole face 0.5 mm in: the depth map is flat at 0.5 inside it
+    depth = d["depth"]
+    assert depth.max() == pytest.approx(0.5, abs=1e-4)
+    assert float(d["force_n"]) > 0
+    # the contact sits where the pose says (row 0 = largest y, x to the right)
+    rows, cols = np.nonzero(depth > 0.45)
+    x = -17.5 + (cols.mean() + 0.5) * 35 / 128
+    y = 17.5 - (rows.mean() + 0.5) * 35 / 128
+    assert x == pytest.approx(2.0, abs=0.3) and y == pytest.approx(-1.0, abs=0.3)
+    assert np.abs(depth[:20]).max() < 0.01 * 0.5  # 13 mm away the gel has moved < 1 % of d
+    assert meta["model"] == "linear" and meta["max_penetration_mm"] < 1e-5
+    assert d["stick_mask"].shape == d["contact_mask"].shape and not d["stick_mask"].any()
     again = run("simulate", "--indenter", "flat_punch", "--depth", 0.5, "--out", out)
     assert again.exit_code != 0 and "--overwrite" in " ".join(again.output.split())
+    # a file whose metadata breaks the format is refused, naming file, field, expected, actual
+    bad = tmp_path / "bad.npz"
+    for field, value, words in ((("pose", "depth_mm"), "deep", ("pose.depth_mm", '"deep"')),
+                                (("n_nodes",), 7, ("'vertices'", "(7, 3)"))):
+        doc = json.loads(json.dumps(meta))
+        inner = doc
+        for k in field[:-1]:
+            inner = inner[k]
+        inner[field[-1]] = value
+        np.savez(bad, **{**d, "metadata": np.array(json.dumps(doc))})
+        with pytest.raises(ContactFileError) as err:
+            load_contact(bad)
+        assert str(bad) in str(err.value) and all(w in str(err.value) for w in words), err.value
 
 
 @pytest.mark.parametrize("name", list_indenters())
@@ -191,4 +207,12 @@ def test_mesh_file_indenters_are_recorded_so_they_can_be_simulated_again(shared_
     assert rec["indenter_sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     again = get_indenter(rec["indenter"], pressing_face=rec["pressing_face"])
     assert again.content_hash == ind.content_hash
+    # the format holds the record, and refuses a mesh-file record without its path or hash
+    base = {**rec, "pose": {"depth_mm": 0.5}, "material": {}, "mesh_hash": "m", "n_nodes": 1,
+            "units": {}, "frame": "sensor"}
+    assert contact_metadata(base).indenter_sha256 == rec["indenter_sha256"]
+    with pytest.raises(ContactFileError, match="absolute path"):
+        contact_metadata({**base, "indenter": path.name})
+    with pytest.raises(ContactFileError, match="indenter_sha256 missing"):
+        contact_metadata({k: v for k, v in base.items() if k != "indenter_sha256"})
     assert indenter_record(get_indenter("sphere_r4")) == {"indenter": "sphere_r4", "indenter_kind": "primitive"}

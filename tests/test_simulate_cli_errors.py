@@ -84,6 +84,13 @@ def test_a_shard_of_another_dataset_is_refused_not_mixed_in(tmp_path, pad_sim):
     refused = run(*BATCH, "--seed", 0, "--out", a)
     assert_clean_error(refused, "shard_00001.npz", "seed (--seed): 1 in the shard, 0 now", "delete")
     assert (a / "shard_00001.npz").read_bytes() == foreign
+    # a shard whose metadata breaks the format is refused, naming the field and its value
+    with np.load(a / "shard_00001.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = {**json.loads(str(arrays["metadata"])), "shard_index": -1}
+    np.savez(a / "shard_00001.npz", **{**arrays, "metadata": np.array(json.dumps(meta))})
+    refused = run(*BATCH, "--seed", 0, "--out", a)
+    assert_clean_error(refused, "shard_00001.npz", "field 'shard_index'", "(got -1)", "delete")
     # deleting it, as the message says, regenerates it; the shard without a card entry is kept
     (a / "shard_00001.npz").unlink()
     fixed = run(*BATCH, "--seed", 0, "--out", a)

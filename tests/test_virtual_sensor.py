@@ -261,10 +261,13 @@ def test_simulate_cli_renders_rgb_frame(tmp_path):
                               "sphere_r4", "--x", "1", "--y", "2", "--depth", "0.5", "--out",
                               str(out)])
     assert res.exit_code == 0, res.output
-    with np.load(out) as d:
-        frame = d["frame"]
-        meta = json.loads(str(d["metadata"]))
-        assert d["depth"].shape == (128, 128) and d["depth"].max() > 0.4
+    from tactile_deploy.simulation.contact_file import load_contact
+
+    contact = load_contact(out)   # the format's reader checks the arrays and the metadata
+    d, meta = contact.arrays, contact.metadata.model_dump()
+    frame = d["frame"]
+    assert d["depth"].shape == (128, 128) and d["depth"].max() > 0.4
+    assert meta["frame_shape"] == [480, 640, 3] and meta["pose_reached"]["depth_mm"] > 0
     assert frame.shape == (480, 640, 3) and frame.dtype == np.uint8
     png = cv2.imread(str(out.with_suffix(".png")))[..., ::-1]
     np.testing.assert_array_equal(png, frame)

@@ -99,8 +99,10 @@ def test_plugin_is_loaded_by_the_runtime(wizard_run):
         assert f"<h2>{step}:" in html
     for png in ("reference", "camera", "presses", "shading", "shading_cv", "fem", "plugin"):
         assert (out / "calibration" / f"{png}.png").stat().st_size > 10_000
-    metrics = json.loads((out / "calibration" / "metrics.json").read_text())
-    assert metrics["steps"]["presses"]["presses used"] >= 22
+    from tactile_deploy.calibration.wizard.report import load_calibration_metrics
+
+    metrics = load_calibration_metrics(out / "calibration" / "metrics.json")
+    assert metrics.steps["presses"]["presses used"] >= 22 and metrics.sensor == "acme"
     # and the main command runs on it: its demo clip (the calibration frames) -> pad meshes
     res = CliRunner().invoke(app, ["run", "--sensor", str(out), "--source", "demo", "--out",
                                    str(folder / "run"), "--no-forces", "--format", "ply"])

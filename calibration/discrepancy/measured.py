@@ -9,7 +9,9 @@ Two layouts hold the same content (N samples, one row per sample):
   known; ``force_n`` (N,) float, measured total normal force, NaN where not known. Optional:
   ``contact_id`` (N,) int (samples of one physical contact, e.g. several frames of one press,
   share it; default: every sample its own contact), ``noise_mm`` (scalar, the depth noise of one
-  pixel, one sigma, when it is known).
+  pixel, one sigma, when it is known), ``header_json`` (scalar str: a :class:`MeasuredHeader`,
+  written by :func:`save_measured`; when present, :func:`load_measured` checks the arrays against
+  it: sample and contact counts, which maps, frame size, noise).
 * **a folder** with ``contacts.csv``: columns ``indenter, x_mm, y_mm, theta_deg, depth_mm,
   force_n`` (empty cell = not known), ``depth_file`` (a .npy (128, 128) map, mm) or
   ``frame_file`` (an RGB image), optional ``contact_id``; paths relative to the folder.
@@ -34,7 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
+from typing import Literal
+
+from pydantic import Field, ValidationError
+
+from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.indenters import ContactPose
+from tactile_deploy.jsonfile import validation_error_text
 from tactile_deploy.pad.geometry import PadGeometry
 
 #: Depth grid of the measured maps (the standard grid of docs: 128 x 128 over +-17.5 mm).
@@ -48,6 +56,36 @@ POSE_FIELDS = (("x_mm", "x_mm"), ("y_mm", "y_mm"), ("depth_cmd_mm", "depth_mm"))
 
 class MeasuredDataError(ValueError):
     """Measured data that cannot be used (the message names the file and field)."""
+
+
+#: Units of the .npz layout's arrays (``header_json["units"]``).
+MEASURED_UNITS = {"depth": "mm pushed in along -z", "frames": "RGB uint8, raw camera pixels",
+                  "x_mm": "mm", "y_mm": "mm", "theta_deg": "deg", "depth_mm": "mm",
+                  "force_n": "N", "noise_mm": "mm"}
+MEASURED_FRAME = "sensor: origin at the centre of the sensing surface, z up out of the gel"
+MEASURED_DEPTH_GRID = ("128 x 128 pixels over x, y in [-17.5, 17.5] mm; row 0 = largest y, "
+                       "column 0 = smallest x")
+
+
+class MeasuredHeader(StrictModel):
+    """``header_json`` of a measured-data .npz: what the arrays hold, checked on reading."""
+
+    format_version: Literal[1] = Field(1, description="Version of this format.")
+    n_samples: int = Field(ge=0, description="Samples (rows of every per-sample array).")
+    n_contacts: int = Field(ge=0, description="Distinct physical contacts (contact_id values).")
+    n_known: int = Field(ge=0, description="Samples whose commanded contact (x_mm, y_mm, "
+                         "depth_mm) is given.")
+    maps: list[Literal["depth", "frames"]] = Field(min_length=1, description="Which of the "
+                                                   "maps the file holds.")
+    frames_shape: list[int] | None = Field(None, min_length=3, max_length=3, description=""
+                                           "(H, W, 3) of each RGB frame, when frames are held.")
+    noise_mm: float | None = Field(None, gt=0, description="Depth noise of one pixel, one "
+                                   "sigma, mm (also the array noise_mm), when known.")
+    source: str = Field(description="Where the samples came from when they were written.")
+    units: dict[str, str] = Field(default_factory=lambda: dict(MEASURED_UNITS),
+                                  description="Unit of each array.")
+    frame: str = Field(MEASURED_FRAME, description="Coordinate frame of the positions.")
+    depth_grid: str = Field(MEASURED_DEPTH_GRID, description="Pixel geometry of 'depth'.")
 
 
 @dataclass
@@ -188,6 +226,7 @@ class MeasuredData:
         """The samples ``index`` (array of ints) as new measured data."""
         idx = np.asarray(index, np.int64)
         metadata = dict(self.metadata)
+        metadata.pop("header", None)   # the header of the file describes all its samples
         if "csv_rows" in metadata:
             metadata["csv_rows"] = [metadata["csv_rows"][i] for i in idx]
         return MeasuredData(
@@ -209,7 +248,8 @@ def measured_arrays(data: MeasuredData) -> dict[str, np.ndarray]:
     """The arrays of the .npz layout of ``data``."""
     arrays = {"indenter": np.array(data.indenter, dtype=str), "x_mm": data.x_mm,
               "y_mm": data.y_mm, "theta_deg": data.theta_deg, "depth_mm": data.depth_cmd_mm,
-              "force_n": data.force_n, "contact_id": data.contact_id}
+              "force_n": data.force_n, "contact_id": data.contact_id,
+              "header_json": np.array(measured_header(data).model_dump_json())}
     if data.depth_mm is not None:
         arrays["depth"] = data.depth_mm.astype(np.float32)
     if data.frames is not None:
@@ -217,6 +257,35 @@ def measured_arrays(data: MeasuredData) -> dict[str, np.ndarray]:
     if data.noise_mm is not None:
         arrays["noise_mm"] = np.float64(data.noise_mm)
     return arrays
+
+
+def measured_header(data: MeasuredData) -> MeasuredHeader:
+    """The header that describes ``data``'s arrays."""
+    return MeasuredHeader(
+        n_samples=data.n, n_contacts=len(np.unique(data.contact_id)),
+        n_known=sum(data.known(i) for i in range(data.n)),
+        maps=[m for m, a in (("depth", data.depth_mm), ("frames", data.frames)) if a is not None],
+        frames_shape=None if data.frames is None else list(data.frames.shape[1:]),
+        noise_mm=data.noise_mm, source=data.source)
+
+
+def _check_header(path: Path, text: str, data: MeasuredData) -> MeasuredHeader:
+    """``header_json`` of the file at ``path`` validated, and the arrays checked against it."""
+    try:
+        header = MeasuredHeader.model_validate_json(text)
+    except ValidationError as e:
+        raise MeasuredDataError(validation_error_text(
+            f"{path}: field 'header_json'", e, "measured-data header",
+            "the format is measured_header.schema.json in calibration/discrepancy/")) from None
+    got = measured_header(data)
+    for name in ("n_samples", "n_contacts", "n_known", "maps", "frames_shape", "noise_mm"):
+        expected, actual = getattr(header, name), getattr(got, name)
+        if expected != actual:
+            raise MeasuredDataError(
+                f"{path}: field 'header_json.{name}': the header says {expected!r}, the arrays "
+                f"hold {actual!r}; the arrays were changed after the file was written (write it "
+                "again with save_measured, or remove header_json)")
+    return header
 
 
 def measured_sha256(path: str | os.PathLike) -> str:
@@ -293,7 +362,7 @@ def load_measured(path: str | os.PathLike) -> MeasuredData:
                                         f"{arr.dtype}; save one value for all samples, or leave "
                                         "the field out to have it estimated")
             noise = float(arr.reshape(-1)[0])
-        return MeasuredData(
+        data = MeasuredData(
             depth_mm=read("depth") if "depth" in keys else None,
             frames=read("frames") if "frames" in keys else None, indenter=indenter,
             x_mm=per_sample("x_mm"), y_mm=per_sample("y_mm"), theta_deg=per_sample("theta_deg"),
@@ -301,6 +370,10 @@ def load_measured(path: str | os.PathLike) -> MeasuredData:
             contact_id=(np.asarray(read("contact_id")).reshape(-1) if "contact_id" in keys
                         else np.arange(n)),
             noise_mm=noise, source=str(path))
+        if "header_json" in keys:
+            header = _check_header(path, str(read("header_json")), data)
+            data.metadata["header"] = header
+        return data
 
 
 def _load_folder(folder: Path) -> MeasuredData:

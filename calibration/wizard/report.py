@@ -1,15 +1,61 @@
 """The calibration report inside the plugin folder: ``calibration/report.html`` (figures of merit
-and pictures of every step), ``calibration/metrics.json`` and the PNG figures it shows."""
+and pictures of every step), ``calibration/metrics.json`` (:class:`CalibrationMetrics`, read back
+by :func:`load_calibration_metrics`) and the PNG figures it shows."""
 
 from __future__ import annotations
 
 import html
 import math
+import os
 import shutil
 from pathlib import Path
 
-from tactile_deploy.calibration.wizard.state import STEP_TITLES, STEPS
+from typing import Literal
+
+from pydantic import Field, ValidationError
+
 from tactile_deploy.atomic import write_json, write_text
+from tactile_deploy.calibration.wizard.config import WizardConfig
+from tactile_deploy.calibration.wizard.state import STEP_TITLES, STEPS
+from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.jsonfile import read_json, validation_error_text
+
+METRICS_NAME = "metrics.json"
+
+#: A figure of merit: a number (its name carries the unit), a text, or None (not measured).
+Metric = float | int | str | None
+
+
+class CalibrationMetricsError(ValueError):
+    """A calibration metrics file is missing or invalid (the message names file and field)."""
+
+
+class CalibrationMetrics(StrictModel):
+    """``PLUGIN/calibration/metrics.json``: the figures of merit of each step of the calibration
+    that made the plugin (what ``report.html`` shows as tables)."""
+
+    sensor: str = Field(description="Name of the plugin the calibration made.")
+    source: str = Field(description="Frame source the frames came from (--source).")
+    rig: str | None = Field(description="Rig that pressed (--rig), or None for hand presses.")
+    config: WizardConfig = Field(description="The wizard config the steps were run with.")
+    steps: dict[Literal[STEPS], dict[str, Metric]] = Field(  # type: ignore[valid-type]
+        description="Figures of merit by step (names carry units; None: not measured).")
+
+
+def load_calibration_metrics(path: str | os.PathLike) -> CalibrationMetrics:
+    """Read and check a calibration's ``metrics.json`` (:class:`CalibrationMetricsError` naming
+    the file, each bad field and the value it had)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationMetricsError(f"calibration metrics {path} not found")
+    doc = read_json(path, CalibrationMetricsError, "the calibration's metrics.json")
+    try:
+        return CalibrationMetrics.model_validate(doc)
+    except ValidationError as e:
+        raise CalibrationMetricsError(validation_error_text(
+            path, e, "calibration metrics",
+            "written by `tactile-deploy calibrate`; the format is metrics.schema.json in "
+            "calibration/wizard/")) from None
 
 
 def _cell(v) -> str:
@@ -65,8 +111,9 @@ started {html.escape(state.started)}. Made by <code>tactile-deploy calibrate</co
 """
     path = folder / "report.html"
     write_text(path, page)
-    write_json(folder / "metrics.json", {"sensor": ctx.sensor, "source": state.source,
-                                         "rig": state.rig, "config": state.config,
-                                         "steps": {s: {k: _plain(v) for k, v in m.items()}
-                                                   for s, m in metrics.items()}})
+    doc = CalibrationMetrics(sensor=ctx.sensor, source=state.source, rig=state.rig,
+                             config=WizardConfig.model_validate(state.config),
+                             steps={s: {k: _plain(v) for k, v in m.items()}
+                                    for s, m in metrics.items()})
+    write_json(folder / METRICS_NAME, doc.model_dump(mode="json"))
     return path

@@ -93,7 +93,11 @@ def retake_reference(plugin: SensorPlugin, source, n_frames: int = 16,
     from tactile_deploy.atomic import atomic_path, write_json
     from tactile_deploy.checksums import file_sha256
     from tactile_deploy.imaging.shading import frame_offset
+    from pydantic import ValidationError
+
+    from tactile_deploy.jsonfile import validation_error_text
     from tactile_deploy.runtime.pipeline import ImagingPipeline
+    from tactile_deploy.runtime.plugins.manifest import PluginManifest
 
     m = plugin.manifest
     old_ref = plugin.reference_frame
@@ -131,7 +135,12 @@ def retake_reference(plugin: SensorPlugin, source, n_frames: int = 16,
     doc["reference_frame"] = {"path": ref_file.name, "sha256": file_sha256(ref_file)}
     doc["noise_reference"] = {"path": noise_file.name, "sha256": file_sha256(noise_file),
                               "handling": doc["noise_reference"]["handling"]}
-    write_json(folder / MANIFEST_NAME, doc)
+    try:   # the manifest is written through its model, so a broken one is never written
+        manifest = PluginManifest.model_validate(doc)
+    except ValidationError as e:
+        raise PluginError(validation_error_text(folder / MANIFEST_NAME, e, "plugin manifest "
+                                                "after re-taking the reference")) from None
+    write_json(folder / MANIFEST_NAME, manifest.model_dump(mode="json"))
     load_manifest(folder)                      # the new manifest reads back
     off = frame_offset(mean, old_ref)
     return RetakenReference(folder, ref_file, noise_file, len(frames),

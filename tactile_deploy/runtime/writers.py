@@ -22,7 +22,6 @@ further writes are skipped, and :attr:`MeshWriter.error` holds the message; the 
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -42,8 +41,6 @@ SURFACE_FORMATS = ("ply", "obj", "glb")
 VOLUME_FORMATS = ("vtu",)
 ARRAY_FORMATS = ("npz",)
 FORMATS = SURFACE_FORMATS + VOLUME_FORMATS + ARRAY_FORMATS
-#: Version of the per-frame ``.npz`` layout (:func:`write_frame_npz`).
-FRAME_NPZ_VERSION = 1
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -94,13 +91,17 @@ def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.
     vertices       (n, 3) float32  mm, sensor frame, deformed (vertex i = pad mesh vertex i)
     rest_vertices  (n, 3) float32  mm, sensor frame, the undeformed pad mesh
     depth          (128, 128) float32  mm pushed in along -z, model grid (row 0 = largest y)
-    metadata       () str          JSON: format, version, units, frame, mesh_hash, and what the
-                                   run adds (sensor, frame_index, t_capture_ns, ...)
+    metadata       () str          JSON: :class:`~tactile_deploy.runtime.frame_file.FrameMeshMetadata`
+                                   (format, version, units, frame, mesh_hash, and what the run
+                                   adds: sensor, frame_index, t_capture_ns, ...), checked before
+                                   writing; read back with
+                                   :func:`~tactile_deploy.runtime.frame_file.load_frame_npz`
     """
     from tactile_deploy.atomic import write_npz
+    from tactile_deploy.runtime.frame_file import FRAME_FORMAT, FRAME_NPZ_VERSION, frame_metadata
     from tactile_deploy.runtime.publish import SENSOR_FRAME
 
-    meta = {"format": "tactile-deploy.frame", "version": FRAME_NPZ_VERSION,
+    meta = {"format": FRAME_FORMAT, "version": FRAME_NPZ_VERSION,
             "units": {"vertices": "mm", "rest_vertices": "mm", "depth": "mm"},
             "frame": SENSOR_FRAME, "mesh_hash": topology.mesh_hash,
             "depth": "mm the surface is pushed in along -z; 128 x 128 over +-17.5 mm, row 0 at the "
@@ -119,7 +120,8 @@ def write_frame_npz(path: Path, topology, vertices_mm: np.ndarray, depth_mm: np.
     from tactile_deploy.atomic import finite_or_null
 
     # strict JSON: a score not computed (NaN, the physics lift has no OOD score) is null
-    write_npz(path, **arrays, metadata=np.array(json.dumps(finite_or_null(meta))))
+    checked = frame_metadata(finite_or_null(meta), f"{path}: metadata to write")
+    write_npz(path, **arrays, metadata=np.array(checked.model_dump_json()))
 
 
 #: Why a requested mesh was not written.

@@ -48,6 +48,7 @@ from tactile_deploy.simulation.contact import (
     ContactSample,
     get_camera,
     get_simulator,
+    indenter_record,
 )
 
 #: Deepest indentation (mm) a virtual sensor accepts, as for ``simulate`` (half the gel).
@@ -306,8 +307,8 @@ class VirtualSensor:
         detail = np.where(image.mask & inside, np.maximum(fine, image.depth_mm), image.depth_mm)
         n_plane = mesh.n_plane
         meta = dict(out.metadata)
+        meta.update(indenter_record(indenter))   # a mesh file: its absolute path and sha256
         meta.update({
-            "indenter_kind": getattr(indenter, "kind", ""),
             "material": self.simulator.material.model_dump(),
             "effects": [e.spec() for e in self.effects],
             "mesh_hash": mesh.content_hash, "n_nodes": mesh.n_nodes,

@@ -15,7 +15,6 @@ contact: use it where a sharper image of the surface matters (the optics), and s
 from __future__ import annotations
 
 import functools
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -92,8 +91,14 @@ class ContactSample:
     stick_mask: np.ndarray | None = None
 
     def npz_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays of the ``simulate --out FILE.npz`` format (metadata as a JSON string; ``frame``
-        only when a virtual sensor rendered one)."""
+        """Arrays of the ``simulate --out FILE.npz`` format (metadata checked as
+        :class:`~tactile_deploy.simulation.contact_file.ContactMetadata`, stored as a JSON string;
+        ``frame`` only when a virtual sensor rendered one). Raises
+        :class:`~tactile_deploy.simulation.contact_file.ContactFileError` when the metadata does
+        not follow the format."""
+        from tactile_deploy.simulation.contact_file import contact_metadata
+
+        meta = contact_metadata(self.metadata, "contact metadata to write")
         arrays = {
             "depth": self.depth_mm,
             "depth_detail": self.depth_detail_mm,
@@ -103,7 +108,7 @@ class ContactSample:
             "force_n": np.float32(self.force_n),
             "contact_mask": self.contact_mask,
             "pressure_kpa": self.pressure_kpa,
-            "metadata": np.array(json.dumps(self.metadata)),
+            "metadata": np.array(meta.json_text()),
         }
         if self.frame is not None:
             arrays["frame"] = self.frame

@@ -57,6 +57,7 @@ from tactile_deploy.atomic import write_json, write_npz
 from tactile_deploy.fem.material import Material
 from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.indenters import ContactPose, get_indenter
+from tactile_deploy.jsonfile import validation_error_text
 from tactile_deploy.simulation.contact import (
     DEPTH_DETAIL_MEANING,
     DEPTH_MEANING,
@@ -69,6 +70,7 @@ from tactile_deploy.simulation.contact import (
     get_simulator,
     simulate_contact,
 )
+from tactile_deploy.simulation.contact_file import ImageGeometry
 
 CARD_NAME = "dataset.json"
 #: Shard arrays stored in half precision when ``spec.storage == "float16"``.
@@ -118,6 +120,36 @@ class DatasetSpec(StrictModel):
 
     def shard_count(self, index: int) -> int:
         return min(self.shard_size, self.n_samples - index * self.shard_size)
+
+
+class ShardStorage(StrictModel):
+    """How a shard's arrays are stored."""
+
+    precision: Literal["float16", "float32"] = Field(description="Precision of "
+                                                     f"{', '.join(STORED_IN_HALF)}.")
+    dtypes: dict[str, str] = Field(description="numpy dtype of every array, by name.")
+    note: str = Field(description="What the precision means for the values.")
+
+
+class ShardMetadata(StrictModel):
+    """``metadata`` of a shard (``shard_NNNNN.npz``): which dataset and shard it is, and what its
+    arrays mean. Written through this model; a shard the card does not list is recognised by it."""
+
+    format_version: Literal[1] = Field(1, description="Version of the shard layout.")
+    generator_version: str = Field(description="Version of the contact generator.")
+    shard_index: int = Field(ge=0, description="Index of this shard in the dataset.")
+    n_samples: int = Field(ge=0, description="Contacts in this shard.")
+    rejected_poses: int = Field(ge=0, description="Drawn poses the simulator refused (redrawn).")
+    spec: DatasetSpec = Field(description="The dataset's spec (the card's).")
+    mesh_hash: str = Field(description="Content hash of the pad mesh.")
+    n_nodes: int = Field(gt=0, description="Nodes of the pad mesh.")
+    formulation: str = Field(description="Element formulation of the pad solver.")
+    units: dict[str, str] = Field(description="Unit of each array and spec number.")
+    frame: str = Field(description="Coordinate frame of the positions.")
+    depth: str = Field(description="What ``depth`` is.")
+    depth_detail: str = Field(description="What ``depth_detail`` is.")
+    image: ImageGeometry = Field(description="Pixel geometry of the depth maps.")
+    storage: ShardStorage = Field(description="Precision and dtypes of the arrays.")
 
 
 class ShardRecord(StrictModel):
@@ -220,29 +252,28 @@ def generate_shard(spec: DatasetSpec, index: int, out_dir: Path) -> ShardRecord:
             arrays[key] = arrays[key].astype(np.float16)
     arrays["rest_vertices"] = sim.mesh.vertices.astype(np.float32)
     arrays["indenter_names"] = np.array([ind.name for ind in indenters])
-    arrays["metadata"] = np.array(json.dumps({
-        "format_version": 1,
-        "generator_version": GENERATOR_VERSION,
-        "shard_index": index,
-        "n_samples": count,
-        "rejected_poses": rejected,
-        "spec": spec.model_dump(mode="json"),
-        "mesh_hash": sim.mesh.content_hash,
-        "n_nodes": n,
-        "formulation": sim.formulation,
-        "units": SHARD_UNITS,
-        "frame": SENSOR_FRAME,
-        "depth": DEPTH_MEANING,
-        "depth_detail": DEPTH_DETAIL_MEANING,
-        "image": camera_metadata(cam),
-        "storage": {
-            "precision": spec.storage,
-            "dtypes": {k: str(v.dtype) for k, v in arrays.items()},
-            "note": (f"{', '.join(STORED_IN_HALF)} rounded to 11 significant bits (<= 0.49 um "
-                     f"below 2 mm); readers cast to float32") if spec.storage == "float16"
-                    else "float arrays stored exactly as computed (float32)",
-        },
-    }))
+    arrays["metadata"] = np.array(ShardMetadata(
+        generator_version=GENERATOR_VERSION,
+        shard_index=index,
+        n_samples=count,
+        rejected_poses=rejected,
+        spec=spec,
+        mesh_hash=sim.mesh.content_hash,
+        n_nodes=n,
+        formulation=sim.formulation,
+        units=SHARD_UNITS,
+        frame=SENSOR_FRAME,
+        depth=DEPTH_MEANING,
+        depth_detail=DEPTH_DETAIL_MEANING,
+        image=ImageGeometry.model_validate(camera_metadata(cam)),
+        storage=ShardStorage(
+            precision=spec.storage,
+            dtypes={k: str(v.dtype) for k, v in arrays.items()},
+            note=(f"{', '.join(STORED_IN_HALF)} rounded to 11 significant bits (<= 0.49 um "
+                  f"below 2 mm); readers cast to float32") if spec.storage == "float16"
+            else "float arrays stored exactly as computed (float32)",
+        ),
+    ).model_dump_json())
     path = shard_path(out_dir, index)
     write_npz(path, **arrays)
     if limits is not None:
@@ -310,23 +341,24 @@ def _existing_shard(
                 f"from another dataset; {fix}"
             )
         return recorded
+    if meta_text is None:
+        raise ValueError(f"{path} is not listed in {path.parent / CARD_NAME} and has no metadata "
+                         f"to say which dataset it belongs to; {fix}")
     try:
-        meta = json.loads(meta_text) if meta_text is not None else None
-        theirs = DatasetSpec.model_validate(meta["spec"]) if isinstance(meta, dict) else None
-    except (json.JSONDecodeError, KeyError, TypeError, ValidationError):
-        theirs = None
-    if theirs is None:
-        raise ValueError(f"{path} is not listed in {path.parent / CARD_NAME} and its metadata does "
-                         f"not say which dataset it belongs to; {fix}")
-    if theirs != spec:
-        raise ValueError(f"{path} belongs to a different dataset ({spec_differences(theirs, spec, 'the shard')}); {fix}")
-    if meta.get("shard_index") != index or meta.get("mesh_hash") != mesh_hash:
+        meta = ShardMetadata.model_validate_json(meta_text)
+    except ValidationError as e:
+        raise ValueError(validation_error_text(
+            path, e, "shard metadata", f"it is not listed in {path.parent / CARD_NAME} and its "
+            f"metadata does not say which dataset it belongs to; {fix}")) from None
+    if meta.spec != spec:
+        raise ValueError(f"{path} belongs to a different dataset ({spec_differences(meta.spec, spec, 'the shard')}); {fix}")
+    if meta.shard_index != index or meta.mesh_hash != mesh_hash:
         raise ValueError(
-            f"{path} is shard {meta.get('shard_index')} of mesh {str(meta.get('mesh_hash'))[:12]}..., "
+            f"{path} is shard {meta.shard_index} of mesh {meta.mesh_hash[:12]}..., "
             f"expected shard {index} of mesh {mesh_hash[:12]}...; {fix}"
         )
     return ShardRecord(file=path.name, n_samples=expected, sha256=sha,
-                       rejected_poses=int(meta.get("rejected_poses", 0)))
+                       rejected_poses=meta.rejected_poses)
 
 
 def scan_dataset(spec: DatasetSpec, out_dir: str | os.PathLike) -> dict[int, ShardRecord]:

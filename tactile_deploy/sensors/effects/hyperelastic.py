@@ -5,9 +5,9 @@ Physics. The nominal model is small-strain linear elasticity; at indentations of
 approximation) departs from it: geometric nonlinearity (equilibrium in the deformed shape) and
 material nonlinearity (stiffening in compression, volume conservation exact rather than
 linearised). This effect solves the pad as a compressible neo-Hookean solid
-(:mod:`tactile_deploy.sensors.effects._neo_hookean`: isochoric neo-Hookean energy per tet plus a
-bulk energy on the nodal patch volumes, whose small-strain limit is exactly the nominal
-locking-free stiffness) with frictionless contact against the indenter, by fixed-point
+(:class:`tactile_deploy.fem.hyperelastic.NeoHookeanGel`, the resolved solver's model: isochoric
+neo-Hookean energy per tet plus a bulk energy on the nodal patch volumes, whose small-strain
+limit is exactly the nominal locking-free stiffness) with frictionless contact against the indenter, by fixed-point
 iterations on the nominal model's factorised stiffness::
 
     K u_(k+1) = f_contact - s r(u_k),    r(u) = f_int(u) - K u  (the large-deformation terms)
@@ -17,7 +17,8 @@ pre-displacement ``-K^-1 s r`` shifts the indenter's intrusion; the exact active
 until the displacements change by less than ``TOLERANCE_MM``. ``strength`` s scales the
 large-deformation terms: 0 is the linear model (null), 1 neo-Hookean, > 1 a gel that stiffens
 faster than neo-Hookean (Gent- or Mooney-Rivlin-like at large strain). The internal forces run as
-warp kernels when warp is installed (numpy otherwise).
+warp kernels when warp is installed (:mod:`tactile_deploy.fem.hyperelastic_warp`; numpy
+otherwise).
 
 Signature: against the nominal sensor the residual (depth map, force) grows faster than linearly
 with the indentation depth: the large-deformation terms are of second order in the strain, so
@@ -40,7 +41,8 @@ import numpy as np
 from pydantic import Field
 
 from tactile_deploy.fem.simulator import ContactResult, surface_contact_forces
-from tactile_deploy.sensors.effects._neo_hookean import NeoHookeanPad
+from tactile_deploy.fem.hyperelastic import InvertedElementError, NeoHookeanGel
+from tactile_deploy.fem.hyperelastic_warp import NeoHookeanForces
 from tactile_deploy.sensors.effects.base import Effect, EffectParams
 
 #: Convergence tolerance of the fixed-point iterations, mm (largest nodal change).
@@ -60,12 +62,14 @@ class HyperelasticConvergenceError(RuntimeError):
 
 
 def _pad_model(simulator):
-    """Neo-Hookean force model of the simulator's mesh at E = 1 MPa (cached on the simulator)."""
+    """Neo-Hookean internal forces of the simulator's mesh at E = 1 MPa (cached on the
+    simulator): ``_pad_model(sim)(u, backend)`` (n, 3), ``.gel`` the
+    :class:`~tactile_deploy.fem.hyperelastic.NeoHookeanGel`."""
 
     cached = getattr(simulator, "_neo_hookean_pad", None)
     if cached is None:
-        cached = NeoHookeanPad(simulator.mesh.vertices, simulator.mesh.tets, 1.0,
-                               simulator.material.nu)
+        cached = NeoHookeanForces(NeoHookeanGel(simulator.mesh.vertices, simulator.mesh.tets,
+                                                1.0, simulator.material.nu))
         simulator._neo_hookean_pad = cached
     return cached
 
@@ -102,7 +106,11 @@ def solve_neo_hookean(simulator, delta_mm: np.ndarray, strength: float = 1.0,
     def step(u: np.ndarray):
         """One fixed-point map: displacements (n, 3) -> (new displacements, forces)."""
         uq = T.T @ u.ravel()
-        r = T.T @ pad.internal_forces(u, backend).ravel() - K @ uq
+        try:
+            f_int = pad(u, backend)
+        except InvertedElementError:
+            raise _Breakdown from None   # as non-finite forces: the iterations broke down
+        r = T.T @ f_int.ravel() - K @ uq
         ub = (T @ factor.solve(-strength * r)).reshape(-1, 3)
         d_eff = d + ub[nodes, 2]
         if np.any(d_eff > 0):
