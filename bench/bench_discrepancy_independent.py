@@ -3,6 +3,13 @@ naming accuracy, false positives, parameter recovery.
 
     tactile-deploy bench discrepancy --independent [--seeds 5] [--contacts 40] [--null 4]
         [--effects a,b,...] [--no-write]
+    tactile-deploy bench discrepancy --independent --seed-list 3 --effects blur --null 0 \
+        --results part.json      # one part of the run (parts run in parallel processes)
+    tactile-deploy bench discrepancy --independent --summarise part1.json part2.json ...
+
+Every dataset draws its parameters and noise from its own generator, seeded by (seed, dataset):
+a part run alone gives the datasets the whole run gives, so a run can be split over processes
+or machines and its parts summarised together.
 
 Measured data: per seed, commanded contacts of five of the shared indenter meshes
 (``../shared/data/indenters``: sphere, sphere2, cylinder_side, prism, hexagon), within 8 mm of the
@@ -180,14 +187,23 @@ def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, s
     return entry
 
 
-def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log=print,
+def dataset_rng(seed: int, effect: str, null_index: int = 0) -> np.random.Generator:
+    """The generator of one dataset: the effect's parameters, its noise and the force noise.
+    Seeded by the contact set, the effect's place in EFFECTS (effect-free datasets after them)
+    and the effect-free dataset's number: the same wherever and with whatever else it runs."""
+    k = EFFECTS.index(effect) if effect != "none" else len(EFFECTS) + null_index
+    return np.random.default_rng([seed, k, 0x62656E63])
+
+
+def run(sensor_name: str, seeds, n_contacts: int, n_null: int, effects, log=print,
         workers: int = 2, checkpoint=None) -> dict:
-    """Every effect (and ``n_null`` effect-free datasets) on ``seeds`` contact sets of
-    ``n_contacts``; ``checkpoint(results)`` is called after each dataset with the results so
-    far (a run stopped early can still be summarised)."""
+    """Every effect (and ``n_null`` effect-free datasets) on the contact sets ``seeds`` (a list
+    of seeds, or a count: seeds 0..n-1) of ``n_contacts``; ``checkpoint(results)`` is called
+    after each dataset with the results so far (a run stopped early can still be summarised)."""
     from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyOptions, prepare_tables
     from tactile_deploy.sensors import load_sensor
 
+    seeds = list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
     sensor = load_sensor(sensor_name)
     sensor.simulator.prepare()
     simulate = clean_simulator(sensor)
@@ -195,16 +211,17 @@ def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log
     opts = DiscrepancyOptions(workers=workers)
     indenters = [shared_indenter(n) for n in SHARED_INDENTERS]
     runs, t_start = [], time.perf_counter()
-    for seed in range(seeds):
+    for done, seed in enumerate(seeds):
         contacts = random_contacts(n_contacts, seed, indenters)
         clean, clean_forces = simulate(contacts)
-        rng = np.random.default_rng([seed, 0x62656E63])
         t0 = time.perf_counter()
-        tables = prepare_tables(sensor, measured_data(contacts, clean, clean_forces, rng,
-                                                      "clean"), opts)
+        tables = prepare_tables(sensor, measured_data(
+            contacts, clean, clean_forces, np.random.default_rng([seed, 0x7461626C]), "clean"),
+            opts)
         log(f"contact set {seed}: {n_contacts} contacts tabulated in "
             f"{time.perf_counter() - t0:.0f} s")
-        for effect in [*effects, *["none"] * n_null]:
+        for effect, null_index in [*((e, 0) for e in effects), *(("none", j) for j in range(n_null))]:
+            rng = dataset_rng(seed, effect, null_index)
             params = ind.draw(effect, rng) if effect != "none" else {}
             entry = run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params,
                                 simulate, camera, rng, opts)
@@ -216,7 +233,7 @@ def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log
                 f"{entry['explained']} params ok {entry.get('parameters_ok')} "
                 f"({entry['time_s']:.0f} s)")
             if checkpoint is not None:
-                checkpoint(_results(runs, sensor_name, seed + 1, n_contacts, effects,
+                checkpoint(_results(runs, sensor_name, seeds[: done + 1], n_contacts, effects,
                                     t_start, complete=False))
     return _results(runs, sensor_name, seeds, n_contacts, effects, t_start, complete=True)
 
@@ -224,9 +241,32 @@ def run(sensor_name: str, seeds: int, n_contacts: int, n_null: int, effects, log
 def _results(runs, sensor_name, seeds, n_contacts, effects, t_start, complete) -> dict:
     import os
 
-    return {"runs": runs, "sensor": sensor_name, "seeds": seeds, "contacts": n_contacts,
-            "effects": list(effects), "wall_s": time.perf_counter() - t_start,
-            "load_average": os.getloadavg(), "complete": complete}
+    from bench.report import machine_line
+
+    return {"runs": runs, "sensor": sensor_name, "seeds": len(seeds), "seed_list": list(seeds),
+            "contacts": n_contacts, "effects": list(effects),
+            "wall_s": time.perf_counter() - t_start, "load_average": os.getloadavg(),
+            "machine": machine_line(), "processes": 1, "complete": complete}
+
+
+def merge_results(parts: list[dict]) -> dict:
+    """The parts of one run (same sensor and contacts per seed), run side by side, as one
+    result: their datasets together, the longest part's wall time."""
+    first = parts[0]
+    for p in parts[1:]:
+        for key in ("sensor", "contacts"):
+            if p[key] != first[key]:
+                raise ValueError(f"results to merge differ in {key!r}: {first[key]!r} and "
+                                 f"{p[key]!r}; summarise parts of one run only")
+    runs = [r for p in parts for r in p["runs"]]
+    seeds = sorted({r["seed"] for r in runs})
+    effects = [e for e in EFFECTS if any(e in p["effects"] for p in parts)]
+    return {"runs": runs, "sensor": first["sensor"], "seeds": len(seeds), "seed_list": seeds,
+            "contacts": first["contacts"], "effects": effects,
+            "wall_s": max(p["wall_s"] for p in parts),
+            "load_average": [max(p["load_average"][i] for p in parts) for i in range(3)],
+            "machine": first.get("machine"), "processes": sum(p.get("processes", 1) for p in parts),
+            "complete": all(p.get("complete", True) for p in parts)}
 
 
 def _coverage(res: dict) -> str:
@@ -239,8 +279,7 @@ def _coverage(res: dict) -> str:
             f" ({len(runs)} datasets, {n_null} effect-free)")
     if res.get("complete", True):
         return text + "."
-    return text + (f"; the run was stopped after {len(runs)} datasets, during seed "
-                   f"{res['seeds'] - 1}.")
+    return text + f"; the run was stopped after {len(runs)} datasets."
 
 
 def summarise(res: dict) -> tuple[str, dict]:
@@ -248,6 +287,9 @@ def summarise(res: dict) -> tuple[str, dict]:
     from tactile_deploy.sensors.catalog import sensor_config
 
     runs = res["runs"]
+    machine = res.get("machine") or machine_line()
+    processes = res.get("processes", 1)
+    where = "" if processes == 1 else f" as {processes} processes side by side"
     camera = sensor_config(res["sensor"]).optics.camera
     for r in runs:  # parameter checks with the tolerances of this file
         if r["label"] == r["expected"] and r["expected"] not in ("none", "unexplained"):
@@ -289,8 +331,8 @@ def summarise(res: dict) -> tuple[str, dict]:
     fpr = fp / max(len(null), 1)
     text = f"""## Discrepancy workflow on effects made outside the product (`tactile-deploy bench discrepancy --independent`)
 
-{machine_line()}; whole benchmark {res['wall_s'] / 60:.0f} min, load average
-{res['load_average'][2]:.1f} over its last 15 min (the machine is shared). Sensor model
+{machine}; whole benchmark {res['wall_s'] / 60:.0f} min{where}, load average
+{res['load_average'][2]:.1f} over its last 15 min. Sensor model
 `{res['sensor']}` (5,380-node pad); per seed {res['contacts']} commanded contacts of five shared
 indenter meshes (sphere, sphere2, cylinder_side, prism, hexagon; within 8 mm of the centre,
 0.3-0.9 mm deep), their clean `simulate` output with one effect applied by
@@ -331,37 +373,53 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--independent", action="store_true")
     parser.add_argument("--sensor", default="gelslim1")
-    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--seeds", type=int, default=5, help="contact sets 0..N-1")
+    parser.add_argument("--seed-list", default=None,
+                        help="comma list of contact sets to run instead of --seeds (one part)")
     parser.add_argument("--contacts", type=int, default=40)
     parser.add_argument("--null", type=int, default=4, help="effect-free datasets per seed")
-    parser.add_argument("--effects", default=None, help="comma list (default: all)")
+    parser.add_argument("--effects", default=None,
+                        help="comma list (default: all; an empty string: effect-free only)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--summarise", type=Path, default=None,
-                        help="summarise the results JSON of an earlier run (no new runs)")
+    parser.add_argument("--results", type=Path, default=None,
+                        help="write the results JSON here (a part: BENCHMARKS.md is not touched)")
+    parser.add_argument("--summarise", type=Path, nargs="+", default=None,
+                        help="summarise the results JSON of an earlier run, or of its parts run "
+                             "side by side (no new runs)")
     args = parser.parse_args(argv)
-    effects = tuple(args.effects.split(",")) if args.effects else EFFECTS
+    effects = (EFFECTS if args.effects is None
+               else tuple(e for e in args.effects.split(",") if e))
+    unknown = [e for e in effects if e not in EFFECTS]
+    if unknown:
+        parser.error(f"--effects: unknown {', '.join(unknown)}; known: {', '.join(EFFECTS)}")
+    seeds = ([int(x) for x in args.seed_list.split(",")] if args.seed_list else args.seeds)
     from tactile_deploy.atomic import write_text
 
-    results_path = ROOT / "bench" / "results" / "discrepancy-independent.json"
+    results_path = args.results or ROOT / "bench" / "results" / "discrepancy-independent.json"
 
     def save(res):
         results_path.parent.mkdir(parents=True, exist_ok=True)
         write_text(results_path, json.dumps(res, indent=1, default=float) + "\n")
 
     if args.summarise is not None:
-        res = json.loads(args.summarise.read_text())
+        parts = [json.loads(p.read_text()) for p in args.summarise]
+        res = parts[0] if len(parts) == 1 else merge_results(parts)
     else:
-        res = run(args.sensor, args.seeds, args.contacts, args.null, effects,
+        res = run(args.sensor, seeds, args.contacts, args.null, effects,
                   log=lambda m: print(m, flush=True), workers=args.workers,
                   checkpoint=None if args.no_write else save)
+    if args.results is not None:
+        save(res)
+        return {}
     text, summary = summarise(res)
     print(text)
     if not args.no_write:
         from bench.report import write_section
 
         write_section("discrepancy-independent", text)
-        if args.summarise is None:
+        if args.summarise is None or len(args.summarise) > 1:
+            results_path = ROOT / "bench" / "results" / "discrepancy-independent.json"
             save(res)
     return summary
 
