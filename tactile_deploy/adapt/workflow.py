@@ -25,7 +25,6 @@ equals the step's to ~1e-8 mm).
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import time
 from dataclasses import dataclass
