@@ -208,7 +208,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         result = adapt_plugin(target_plugin, depth, AdaptOptions(steps=args.steps, batch_size=args.batch,
                                                                  device=args.device),
-                              step_dir, log=lambda m: None, source={"source": f"{len(depth)} virtual frames"})
+                              step_dir, log=lambda m: None, source={"source": "virtual frames", "frames": len(depth), "refused": 0})
         imaging = _imaging_time(pipe, frames)
         total = time.perf_counter() - t0 + imaging
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from tactile_deploy.adapt.card import AdaptationCard
+from tactile_deploy.adapt.report import AdaptationReport
 from tactile_deploy.fileformat import Format, schemas_main
 from tactile_deploy.imaging.camera_mapping import CameraMapping
 from tactile_deploy.imaging.shading import ShadingHeader
@@ -34,6 +35,8 @@ FORMATS = {f.name: f for f in (
            _HERE / "runtime" / "plugins" / "adaptation_history.schema.json"),
     Format("adaptation step card (card.json)", AdaptationCard,
            _HERE / "adapt" / "adaptation_card.schema.json"),
+    Format("adaptation report (adapted/vN/report.json)", AdaptationReport,
+           _HERE / "adapt" / "adaptation_report.schema.json"),
     Format("camera mapping (camera_mapping.json)", CameraMapping,
            _HERE / "imaging" / "camera_mapping.schema.json"),
     Format("shading model header (shading.npz)", ShadingHeader,

@@ -54,10 +54,25 @@ def test_adapt_writes_a_version_that_runs_and_rolls_back(plugin_copy, tmp_path):
     res = _adapt(plugin_copy, "--steps", "6", "--lr", "3e-5")  # lr 1e-4 at batch 8 oscillates over a few steps
     assert res.exit_code == 0, res.output
     assert "held-out label-free RMSE" in res.output and "new version 1" in res.output, res.output
-    report = json.loads((plugin_copy / "adapted" / "v1" / "report.json").read_text())
-    assert report["heldout_rmse_after_mm"] < report["heldout_rmse_before_mm"]
-    assert report["frames"] == {"adapt": 50, "held_out": 10}
-    assert report["parity_fp32_onnx_vs_step_max_abs_diff_mm"] <= 1e-4
+    from tactile_deploy.adapt.report import AdaptationReportError, load_adaptation_report
+
+    report_path = plugin_copy / "adapted" / "v1" / "report.json"
+    report = load_adaptation_report(report_path)  # the format's reader: the writer built it through the model
+    assert report.heldout_rmse_after_mm < report.heldout_rmse_before_mm
+    assert (report.frames.adapt, report.frames.held_out) == (50, 10)
+    assert report.parity_fp32_onnx_vs_step_max_abs_diff_mm <= 1e-4
+    assert report.improved and report.verdict == "improved" and report.source.frames == 60
+    # the reader refuses what the format does not hold, naming the file, the field and the value
+    doc = json.loads(report_path.read_text())
+    for key, value, words in ((("frames", "held_out"), 0, ("frames.held_out", "greater than or equal to 1", "0")),
+                              (("settings", "optimiser"), "sgd", ("settings.optimiser", "Extra inputs", "sgd"))):
+        bad = json.loads(json.dumps(doc))
+        bad[key[0]][key[1]] = value
+        (tmp_path / "report.json").write_text(json.dumps(bad))
+        with pytest.raises(AdaptationReportError) as err:
+            load_adaptation_report(tmp_path / "report.json")
+        assert str(tmp_path / "report.json") in str(err.value), err.value
+        assert all(w in str(err.value) for w in words), err.value
     assert (plugin_copy / "adapted" / "v1" / "adaptation.png").stat().st_size > 10_000
     plugin = SensorPlugin.load(plugin_copy)
     assert (plugin_copy / "plugin.json").read_bytes() == manifest  # the plugin's own files stay as shipped

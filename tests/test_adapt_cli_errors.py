@@ -88,7 +88,9 @@ def test_the_gate_judges_the_written_model_against_the_start_and_the_active_one(
 
     res = _adapt(plugin_copy, "--steps", "6", "--lr", "3e-5")
     assert res.exit_code == 0 and "new version 1" in res.output, res.output
-    report = json.loads((plugin_copy / "adapted" / "v1" / "report.json").read_text())
+    from tactile_deploy.adapt.report import load_adaptation_report
+
+    report = load_adaptation_report(plugin_copy / "adapted" / "v1" / "report.json").model_dump()
     plugin = SensorPlugin.load(plugin_copy)
     depth, _ = collect_depths(plugin, parse_source("demo"), max_frames=200, log=lambda m: None)
     step = StepProgram.load(STEP)

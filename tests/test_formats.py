@@ -40,3 +40,37 @@ def test_every_format_refuses_unknown_fields_and_nan(name):
     if model.model_config.get("allow_inf_nan") is False and numbers:
         with pytest.raises(ValidationError, match=numbers[0]):
             model.model_validate_json(json.dumps({numbers[0]: "NaN"}).replace('"NaN"', "NaN"))
+
+
+def test_committed_result_files_validate_through_their_readers(tmp_path):
+    """The result files committed in the repository are documents of their formats: the
+    training histories and experiments of docs/results and the learned read-out's card; a
+    changed field is refused with the file, the field and the value named."""
+    from pathlib import Path
+
+    from tactile_deploy.training.experiments import ExperimentsError, load_experiments
+    from tactile_deploy.training.run_files import TrainingRunFileError, load_training_history
+    from tactile_deploy.training.shading_net.card import load_readout_card
+
+    root = Path(__file__).resolve().parents[1]
+    histories = sorted((root / "docs" / "results").glob("*.history.json"))
+    experiments = sorted((root / "docs" / "results").glob("experiments_*.json"))
+    assert len(histories) >= 2 and len(experiments) >= 2
+    for path in histories:
+        history = load_training_history(path)
+        assert history.surface and all(r.val_rmse_mm > 0 for r in history.surface), path
+    for path in experiments:
+        report = load_experiments(path)
+        assert report.runs and len(report.runs) == len(json.loads(path.read_text())["runs"]), path
+    assert load_readout_card(root / "exported" / "gelslim_readout.json").model == "gelslim_readout.onnx"
+
+    doc = json.loads(histories[0].read_text())
+    doc["surface"][0]["epoch"] = 0
+    (tmp_path / "h.json").write_text(json.dumps(doc))
+    with pytest.raises(TrainingRunFileError, match=r"(?s)h\.json.*field 'surface\.0\.epoch'.*greater than or equal to 1.*got 0"):
+        load_training_history(tmp_path / "h.json")
+    doc = json.loads(experiments[0].read_text())
+    doc["runs"][0]["group"] = "sizes"
+    (tmp_path / "e.json").write_text(json.dumps(doc))
+    with pytest.raises(ExperimentsError, match=r"(?s)e\.json.*field 'runs\.0\.group'.*got \"sizes\""):
+        load_experiments(tmp_path / "e.json")

@@ -120,12 +120,34 @@ def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
     assert main(["--units", "1", "--presses", "6", "--epochs", "1", "--width", "4",
                  "--out", str(out)]) == 0
     readout = LearnedReadout(out)
-    card = json.loads(out.with_suffix(".json").read_text())
-    import hashlib
+    from tactile_deploy.training.shading_net.card import load_readout_card
 
-    assert card["sha256"] == hashlib.sha256(out.read_bytes()).hexdigest()
-    assert card["design"] == readout.metadata["design"] == "gelslim1"
-    assert card["data"]["presses_per_unit"] == 6 and card["family"]["units"] == 1
+    card = load_readout_card(out.with_suffix(".json"))  # the format's reader: sha256 of r.onnx checked
+    assert card.design == readout.metadata["design"] == "gelslim1"
+    assert card.data.presses_per_unit == 6 and card.family.units == 1
+    assert card.metadata == {k: str(v) for k, v in readout.metadata.items()}
+
+
+def test_shipped_readout_card_validates_and_names_its_graph(tmp_path):
+    """exported/gelslim_readout.json is a read-out card of the graph beside it; the reader names
+    the file, the field, what it expected and what it found."""
+    import shutil
+
+    from tactile_deploy.training.shading_net.card import ReadoutCardError, load_readout_card
+
+    card = load_readout_card(SHIPPED.with_suffix(".json"))
+    assert card.model == SHIPPED.name and card.design == "gelslim1"
+    assert card.metadata == {k: str(v) for k, v in LearnedReadout(SHIPPED).metadata.items()}
+    doc = json.loads(SHIPPED.with_suffix(".json").read_text())
+    bad = tmp_path / "gelslim_readout.json"
+    bad.write_text(json.dumps({**doc, "training": {**doc["training"], "epochs": 0}}))
+    with pytest.raises(ReadoutCardError, match=r"(?s)gelslim_readout.json.*training.epochs.*greater than or equal to 1.*got 0"):
+        load_readout_card(bad)
+    shutil.copy(SHIPPED, tmp_path / SHIPPED.name)
+    (tmp_path / SHIPPED.name).write_bytes(SHIPPED.read_bytes() + b"x")
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(ReadoutCardError, match=f"field 'sha256': expected the sha256 of .*, got {doc['sha256']}"):
+        load_readout_card(bad)
 
 
 def test_depth_gain_recovers_a_planted_scale():

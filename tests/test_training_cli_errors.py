@@ -393,3 +393,21 @@ def test_export_adapt_refuses_a_mismatched_bundle_cleanly(tiny_run, tmp_path, ca
     (other / "keep.txt").write_text("mine")
     err = _error(capsys, ["export-adapt", "--bundle", root / "run", "--onnx", shipped, "--out", other])
     assert "is not an adaptation step folder" in err and (other / "keep.txt").read_text() == "mine"
+
+
+def test_augmented_twin_writes_the_run_formats(tiny_run, tmp_path):
+    """The augmented twin of a run writes metrics.json in the training run's format: the reader
+    gives back what make_twin returned, and the twin's source is the run's model.pt."""
+    from tactile_deploy.atomic import finite_or_null
+    from tactile_deploy.training.adaptation.augmented_twin import make_twin
+    from tactile_deploy.training.config import StageConfig, TrainConfig
+    from tactile_deploy.training.run_files import load_training_metrics
+
+    root, _, cfg = tiny_run
+    twin_cfg = TrainConfig.model_validate({**cfg, "run_dir": str(tmp_path / "twin"), "augmentation": {}})
+    metrics = make_twin(root / "run" / "model.pt", twin_cfg, tmp_path / "twin", StageConfig(**STAGE), n_eval=2,
+                        log=lambda m: None)
+    back = load_training_metrics(tmp_path / "twin" / "metrics.json")
+    assert back.model_dump(mode="json", exclude_unset=True) == finite_or_null(json.loads(json.dumps(metrics)))
+    assert back.twin_of.bundle == str(root / "run" / "model.pt") and back.scales is None
+    assert back.decoders["lean"].heldout_augmented.n_samples == back.n_samples == 2

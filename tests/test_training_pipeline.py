@@ -44,7 +44,13 @@ def test_train_export_parity(tmp_path, pad):
     lines = []
     metrics = train(cfg, log=lines.append)
     run = tmp_path / "run"
-    history = json.loads((run / "history.json").read_text())
+    from tactile_deploy.training.run_files import load_training_history, load_training_metrics
+
+    history = load_training_history(run / "history.json").model_dump(exclude_unset=True)  # the formats' readers
+    from tactile_deploy.atomic import finite_or_null
+
+    assert load_training_metrics(run / "metrics.json").model_dump(mode="json", exclude_unset=True) == finite_or_null(
+        json.loads(json.dumps(metrics)))  # the file holds what train() returned
     for name in ("image_vae", "mesh_vae", "lean_decoder", "ood_decoder", "projection"):
         losses = [h["train_loss"] for h in history[name]]
         assert len(losses) == 3

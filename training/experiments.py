@@ -17,8 +17,8 @@ its MSE as a **sum** over the map's pixels (16,384) or the mesh's coordinates (1
 as a sum over latent dimensions, so that lambda_paper = kl_weight x n_elements in our reduction
 (mean MSE + kl_weight x KL): ``kl_weight = lambda_paper / n_elements``.
 
-Results go to ``DIR/experiments.json`` after every run (atomically), so a stopped job keeps
-what it finished.
+Results go to ``DIR/experiments.json`` (:class:`ExperimentsReport`, read back by
+:func:`load_experiments`) after every run (atomically), so a stopped job keeps what it finished.
 """
 
 from __future__ import annotations
@@ -27,17 +27,20 @@ import copy
 import json
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, ValidationError
 
+from tactile_deploy.atomic import finite_or_null
 from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.jsonfile import read_json, validation_error_text
 from tactile_deploy.training import distributed
 from tactile_deploy.training.config import StageConfig, TrainConfig
 from tactile_deploy.training.networks.coarsening import build_hierarchy
 from tactile_deploy.training.networks.predictor import Predictor
+from tactile_deploy.training.run_files import DataSummary
 from tactile_deploy.training.train import (
     _freeze,
     _Tensors,
@@ -63,6 +66,67 @@ class ExperimentConfig(StrictModel):
     @staticmethod
     def load(path: str | Path) -> "ExperimentConfig":
         return ExperimentConfig.model_validate(json.loads(Path(path).read_text()))
+
+
+class ExperimentRun(StrictModel):
+    """One result row: the settings of a run and the held-out figures of its image -> mesh path
+    (COMA decoder unless ``decoder`` says otherwise; positions in the sensor frame, mm)."""
+
+    group: Literal["latent", "kl", "scratch", "pretrained"] = Field(description="Experiment group.")
+    d_image: int = Field(ge=1, description="d(z_I), the image latent size.")
+    d_mesh: int = Field(ge=1, description="d(z_M), the mesh latent size.")
+    decoder: Literal["coma", "lean"] | None = Field(None, description="Decoder trained end to end "
+                                                    "(group scratch only).")
+    lambda_image_paper: float | None = Field(None, ge=0, description="lambda_I at the paper's scale (group kl).")
+    lambda_mesh_paper: float | None = Field(None, ge=0, description="lambda_M at the paper's scale (group kl).")
+    kl_weight_image: float | None = Field(None, ge=0, description="Image VAE kl_weight (mean-MSE reduction).")
+    kl_weight_mesh: float | None = Field(None, ge=0, description="Mesh VAE kl_weight (mean-MSE reduction).")
+    image_vae_val_rmse_mm: float | None = Field(None, ge=0, description="Image VAE held-out RMSE "
+                                                "of its last epoch, mm (staged runs).")
+    mesh_vae_val_rmse_mm: float | None = Field(None, ge=0, description="Mesh VAE held-out RMSE of "
+                                               "its last epoch, mm (staged runs).")
+    seconds: float = Field(ge=0, description="Training time of the run (its VAEs included), s.")
+    vertex_rmse_mm: float | None = Field(description="Held-out vertex RMSE, mm (the paper's "
+                                         "metric; None: not finite).")
+    relative_error: float | None = Field(description="Held-out |pred - true| / |true|.")
+    max_error_mm: float | None = Field(description="Largest held-out per-node error, mm.")
+    mesh_reconstruction_relative_error: float | None = Field(
+        description="The mesh VAE alone, relative error (the floor of the COMA path).")
+
+
+class ExperimentsData(StrictModel):
+    """The data every run trained and was judged on."""
+
+    train: DataSummary = Field(description="The training set.")
+    n_eval: int = Field(ge=1, description="Held-out samples evaluated per run.")
+
+
+class ExperimentsReport(StrictModel):
+    """``DIR/experiments.json`` (also ``docs/results/experiments_*.json``): the config and one row
+    per finished run."""
+
+    config: ExperimentConfig = Field(description="The experiments' config.")
+    runs: list[ExperimentRun] = Field(description="Finished runs, in order.")
+    data: ExperimentsData = Field(description="The data.")
+
+
+class ExperimentsError(ValueError):
+    """An experiments.json that is missing or invalid."""
+
+
+def load_experiments(path: str | Path) -> ExperimentsReport:
+    """Read and check an ``experiments.json`` (:class:`ExperimentsError` naming the file, each
+    bad field and the value it had)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ExperimentsError(f"experiments results {path} not found")
+    doc = read_json(path, ExperimentsError, "experiments results")
+    try:
+        return ExperimentsReport.model_validate(doc)
+    except ValidationError as e:
+        raise ExperimentsError(validation_error_text(
+            path, e, "experiments results", "written by `python -m tactile_deploy.training experiments`; the "
+            "format is experiments.schema.json in training/")) from None
 
 
 class _ImageToMesh(torch.nn.Module):
@@ -190,7 +254,8 @@ class _Runner:
             from tactile_deploy.atomic import write_json
 
             self.results["data"] = {"train": self.train_data.summary(), "n_eval": len(self.val_data)}
-            write_json(self.out / "experiments.json", self.results)
+            report = ExperimentsReport.model_validate(finite_or_null(self.results))
+            write_json(self.out / "experiments.json", report.model_dump(mode="json", exclude_unset=True))
 
 
 def kl_weight_from_paper(lam: float, n_elements: int) -> float:

@@ -10,7 +10,8 @@ Data flow of :func:`train`::
       -> stage "projection"   (mesh MSE through the frozen COMA decoder + latent MSE; VAEs frozen;
                                with ``augmentation``: latents of augmented maps)
       -> held-out evaluation of both decoders, OOD calibration
-      -> run_dir/model.pt, heldout.npz, metrics.json, history.json, learning_curves.png
+      -> run_dir/model.pt, heldout.npz, metrics.json, history.json (their formats:
+         tactile_deploy.training.run_files), learning_curves.png
 
 Every stage uses Adam (``lr``) with the learning rate multiplied by ``lr_decay`` after each epoch,
 checkpoints after every epoch (``run_dir/checkpoints/<stage>.pt``) and resumes from there: a
@@ -637,8 +638,10 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             displacement_mm=val_data.displacement_mm[:n_keep], indenter=val_data.indenter[:n_keep],
             **({} if val_data.contact_mask is None else {"contact_mask": val_data.contact_mask[:n_keep]}),
         )
-        write_json(run_dir / "metrics.json", metrics)
-        write_text(run_dir / "history.json", json.dumps(hist, indent=1))
+        from tactile_deploy.training.run_files import training_history, training_metrics
+
+        write_json(run_dir / "metrics.json", training_metrics(metrics).model_dump(mode="json", exclude_unset=True))
+        write_text(run_dir / "history.json", training_history(hist).model_dump_json(indent=1, exclude_unset=True) + "\n")
         plot_curves(hist, run_dir / "learning_curves.png")
     distributed.barrier(dist)
     return metrics

@@ -25,15 +25,15 @@ equals the step's to ~1e-8 mm).
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from tactile_deploy.adapt.report import REPORT_NAME, AdaptationReport
 from tactile_deploy.adapt.step import (
     AdaptSettings,
     Evaluation,
@@ -96,7 +96,8 @@ class AdaptResult:
     """before, after: held-out figures of the start model and of the adapted model as ``run``
     uses them (model.onnx: int8 when the family model is); before_fp32, after_fp32: the same of
     the network (the step program); active: the active model's when it is not the start model;
-    verdict: why a version was or was not written."""
+    verdict: why a version was or was not written; report: what ``report.json`` of the version
+    holds (also when none was written)."""
 
     before: Evaluation
     after: Evaluation
@@ -105,7 +106,7 @@ class AdaptResult:
     n_held_out: int
     improved: bool
     version: object | None = None
-    report: dict = field(default_factory=dict)
+    report: AdaptationReport | None = None
     figure: Path | None = None
     before_fp32: Evaluation | None = None
     after_fp32: Evaluation | None = None
@@ -254,7 +255,7 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
     history = adapt(step, depth[tr], target[tr], weight, settings, progress)
     after_fp32 = evaluate(step, depth[ho], target[ho], weight, keep=("displacement",))
     report = {
-        "plugin": plugin.name, "source": source or {}, "start": start_model, "step": str(step.folder),
+        "plugin": plugin.name, "source": source or None, "start": start_model, "step": str(step.folder),
         "step_card": {"name": card.name, "sha256": card.files["step"].sha256, "torch": card.versions.get("torch")},
         "frames": {"adapt": int(len(tr)), "held_out": int(len(ho))},
         "settings": {"steps": options.steps, "batch_size": options.batch_size, "lr": options.lr,
@@ -302,10 +303,11 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
             verdict = "improved"
         improved = verdict == "improved"
         report["improved"], report["verdict"] = improved, verdict
-        result = AdaptResult(before, after, history, len(tr), len(ho), improved, report=report,
+        result = AdaptResult(before, after, history, len(tr), len(ho), improved,
                              before_fp32=before_fp32, after_fp32=after_fp32, active=active_eval, verdict=verdict)
         if not (improved and options.write):
             report["seconds"] = time.perf_counter() - t_start
+            result.report = AdaptationReport.model_validate(report)
             return result
 
         meta = adaptation_metadata(card, {k: report[k] for k in (
@@ -318,8 +320,10 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
         before_after_figure(depth[ho], target[ho], before.rendered_mm, after.rendered_mm, weight, result.figure,
                             before.rmse_mm, after.rmse_mm)
         report["seconds"] = time.perf_counter() - t_start
-        write_json(staging / "report.json", report)
-        summary = (f"{len(tr)} + {len(ho)} held-out frames of {report['source'].get('source', 'depth maps')}, "
+        result.report = AdaptationReport.model_validate(report)
+        write_json(staging / REPORT_NAME, result.report.model_dump(mode="json", exclude_none=True))
+        where = result.report.source.source if result.report.source is not None else "depth maps"
+        summary = (f"{len(tr)} + {len(ho)} held-out frames of {where}, "
                    f"{options.steps} steps in {history.seconds:.0f} s on {options.device}")
         result.version = add_version(plugin, staging, {
             "created": report["created"], "heldout_rmse_before_mm": before.rmse_mm,
@@ -420,33 +424,30 @@ def before_after_figure(depth, target, before, after, weight, path: Path, rmse_b
 
 
 def summary_lines(result: AdaptResult) -> list[str]:
+    """What ``tactile-deploy adapt`` prints of ``result`` (its report), one line each."""
     r = result.report
-    kind = "int8" if r.get("int8") else "fp32"
+    kind = "int8" if r.int8 else "fp32"
     lines = [
         f"held-out label-free RMSE of model.onnx as `run` uses it ({kind}, {result.n_held_out} frames): "
-        f"{result.before.rmse_mm * 1e3:.2f} um ({r['start']}) -> {result.after.rmse_mm * 1e3:.2f} um "
+        f"{result.before.rmse_mm * 1e3:.2f} um ({r.start}) -> {result.after.rmse_mm * 1e3:.2f} um "
         f"({100 * (result.after.rmse_mm / result.before.rmse_mm - 1):+.2f} %)",
     ]
     if result.active is not None:
-        lines.append(f"active {r['active']} on the same frames: {result.active.rmse_mm * 1e3:.2f} um")
+        lines.append(f"active {r.active} on the same frames: {result.active.rmse_mm * 1e3:.2f} um")
     if result.before_fp32 is not None and result.after_fp32 is not None:
         lines.append(f"network (fp32 twin): {result.before_fp32.rmse_mm * 1e3:.2f} um -> "
                      f"{result.after_fp32.rmse_mm * 1e3:.2f} um"
-                     + (f"; int8 vs fp32 mesh: RMS {r['int8_vs_fp32_rms_diff_mm'] * 1e3:.2f} um, worst "
-                        f"{r['int8_vs_fp32_max_abs_diff_mm'] * 1e3:.1f} um" if r.get("int8") else ""))
-    lines.append(f"adaptation loss: {math.sqrt(r['train_loss_first_mm2']) * 1e3:.2f} -> "
-                 f"{math.sqrt(r['train_loss_last_mm2']) * 1e3:.2f} um RMS over {r['settings']['steps']} steps, "
-                 f"{r['adapt_seconds']:.1f} s ({r['steps_per_s']:.2f} steps/s)")
-    if "parity_fp32_onnx_vs_step_max_abs_diff_mm" in r:
-        lines.append(f"adapted ONNX (fp32) vs step program: max {r['parity_fp32_onnx_vs_step_max_abs_diff_mm']:.2e} mm")
-    if "ood_share_above_threshold_adapted" in r:
-        lines.append(f"held-out frames flagged out of distribution: {100 * r['ood_share_above_threshold_family']:.0f} % "
-                     f"(family model) -> {100 * r['ood_share_above_threshold_adapted']:.0f} % (adapted)")
-    if r.get("renderer_overflow"):
-        lines.append(f"warning: {r['renderer_overflow']} triangles exceeded the renderer's pixel budget "
+                     + (f"; int8 vs fp32 mesh: RMS {r.int8_vs_fp32_rms_diff_mm * 1e3:.2f} um, worst "
+                        f"{r.int8_vs_fp32_max_abs_diff_mm * 1e3:.1f} um" if r.int8 else ""))
+    lines.append(f"adaptation loss: {math.sqrt(r.train_loss_first_mm2) * 1e3:.2f} -> "
+                 f"{math.sqrt(r.train_loss_last_mm2) * 1e3:.2f} um RMS over {r.settings.steps} steps, "
+                 f"{r.adapt_seconds:.1f} s ({r.steps_per_s:.2f} steps/s)")
+    lines.append(f"adapted ONNX (fp32) vs step program: max {r.parity_fp32_onnx_vs_step_max_abs_diff_mm:.2e} mm")
+    if r.ood_share_above_threshold_adapted is not None and r.ood_share_above_threshold_family is not None:
+        lines.append(f"held-out frames flagged out of distribution: {100 * r.ood_share_above_threshold_family:.0f} % "
+                     f"(family model) -> {100 * r.ood_share_above_threshold_adapted:.0f} % (adapted)")
+    if r.renderer_overflow:
+        lines.append(f"warning: {r.renderer_overflow} triangles exceeded the renderer's pixel budget "
                      "(very large lateral displacements); their pixels may be missing from the loss")
     return lines
 
-
-def report_json(result: AdaptResult) -> str:
-    return json.dumps(result.report, indent=2)

@@ -128,7 +128,9 @@ def make_twin(bundle_path: Path, cfg: TrainConfig, out: Path, projection: StageC
 
     write_npz(out / "heldout.npz", depth_mm=held.depth_mm, displacement_mm=held.displacement_mm, indenter=held.indenter)
     write_json(out / "config.json", cfg.model_dump(mode="json") | {"run_dir": str(out)})
-    write_json(out / "metrics.json", metrics)
+    from tactile_deploy.training.run_files import training_metrics
+
+    write_json(out / "metrics.json", training_metrics(metrics).model_dump(mode="json", exclude_unset=True))
     lean = metrics["decoders"]["lean"]
     log(f"twin: held-out vertex RMSE {lean['heldout']['vertex_rmse_mm'] * 1e3:.1f} um on clean maps, "
         f"{lean['heldout_augmented']['vertex_rmse_mm'] * 1e3:.1f} um on augmented maps "

@@ -9,8 +9,8 @@ and procedural faces, ``--mix``) -> ``--crop`` x ``--crop``-cell crops around ea
 deepest cell, jittered by up to 8 cells, inside the grid; :mod:`.crops`) -> :mod:`.fitting`:
 AdamW with a one-cycle learning rate, loss: mean squared error of the gradients (mm per mm) and
 of the depth (in ``DEPTH_UNIT_MM``) -> ONNX (opset 17, dynamic batch and grid size) with the
-feature contract in its metadata, and a card (``.json`` beside it) with the data, the settings
-and the final loss.
+feature contract in its metadata, and a card (``.json`` beside it, :class:`.card.ReadoutCard`)
+with the data, the settings and the final loss.
 
 The crops can be trained elsewhere (a GPU machine without OpenCV or pydantic):
 ``--data-only --data-cache CROPS.npz`` writes them and stops; ``python -m
@@ -230,7 +230,8 @@ def main(argv=None) -> int:
         "seconds": {"data": round(t_data, 1), "total": round(time.perf_counter() - t0, 1)},
     }
     from tactile_deploy.atomic import write_json
+    from tactile_deploy.training.shading_net.card import ReadoutCard
 
-    write_json(args.out.with_suffix(".json"), card)
+    write_json(args.out.with_suffix(".json"), ReadoutCard.model_validate(card).model_dump(mode="json", exclude_none=True))
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}")
     return 0

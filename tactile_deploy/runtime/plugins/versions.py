@@ -5,7 +5,8 @@ Layout inside the plugin folder::
     adapted/
       history.json        every version and which one is active (:class:`AdaptationHistory`)
       v1/model.onnx       the adapted model of version 1 (+ model_fp32.onnx when the shipped graph
-      v1/report.json      is int8), what the adaptation did and measured, and its before/after
+      v1/report.json      is int8), what the adaptation did and measured
+                          (tactile_deploy.adapt.report.AdaptationReport), and its before/after
       v1/adaptation.png   figure
       v2/...
 
