@@ -73,3 +73,15 @@ def schemas_main(formats: dict[str, Format], argv=None) -> int:
     for path in stale:
         print(f"{'stale' if args.check else 'wrote'} {os.path.relpath(path)}")
     return 1 if (args.check and stale) else 0
+
+
+def read_npz_arrays(path: str | os.PathLike, error: type[Exception]) -> dict:
+    """Every array of the ``.npz`` file at ``path``, by name (no pickled objects); a file that
+    is missing or not an ``.npz`` raises ``error`` naming it."""
+    import numpy as np
+
+    try:
+        with np.load(Path(path), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise error(f"{path}: not a readable .npz file ({e})") from None

@@ -1,5 +1,6 @@
 """Reading a JSON document from a file, with errors that name the file and the place; the text of
-a pydantic validation error that names each bad field and the value it had."""
+a pydantic validation error that names each bad field and the value it had; a JSON file read
+through its format's model."""
 
 from __future__ import annotations
 
@@ -41,3 +42,23 @@ def validation_error_text(source, err, what: str, hint: str = "") -> str:
             got_txt = type(got).__name__
         lines.append(f"  field '{loc}': {e['msg']} (got {got_txt})")
     return f"{source}: invalid {what}:\n" + "\n".join(lines) + (f"\n  ({hint})" if hint else "")
+
+
+def read_model_json(path: str | os.PathLike, model, error: type[Exception], what: str,
+                    hint: str = "", expected: str | None = None, missing: str | None = None):
+    """The JSON file at ``path`` validated by the pydantic ``model`` (an instance of it).
+
+    Each failure raises ``error``: a missing file (``missing``, or ``"{what} {path} not found"``),
+    a file that is not JSON text (naming ``expected``, default ``what``), and a document the model
+    refuses (:func:`validation_error_text`: each bad field and its value, then ``hint``).
+    """
+    from pydantic import ValidationError
+
+    path = Path(path)
+    if not path.is_file():
+        raise error(missing or f"{what} {path} not found")
+    doc = read_json(path, error, expected or what)
+    try:
+        return model.model_validate(doc)
+    except ValidationError as e:
+        raise error(validation_error_text(path, e, what, hint)) from None

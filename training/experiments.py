@@ -31,11 +31,11 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from tactile_deploy.atomic import finite_or_null
 from tactile_deploy.fileformat import StrictModel
-from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.jsonfile import read_model_json
 from tactile_deploy.training import distributed
 from tactile_deploy.training.config import StageConfig, TrainConfig
 from tactile_deploy.training.networks.coarsening import build_hierarchy
@@ -117,16 +117,9 @@ class ExperimentsError(ValueError):
 def load_experiments(path: str | Path) -> ExperimentsReport:
     """Read and check an ``experiments.json`` (:class:`ExperimentsError` naming the file, each
     bad field and the value it had)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ExperimentsError(f"experiments results {path} not found")
-    doc = read_json(path, ExperimentsError, "experiments results")
-    try:
-        return ExperimentsReport.model_validate(doc)
-    except ValidationError as e:
-        raise ExperimentsError(validation_error_text(
-            path, e, "experiments results", "written by `python -m tactile_deploy.training experiments`; the "
-            "format is experiments.schema.json in training/")) from None
+    return read_model_json(path, ExperimentsReport, ExperimentsError, "experiments results",
+                           "written by `python -m tactile_deploy.training experiments`; the "
+                           "format is experiments.schema.json in training/")
 
 
 class _ImageToMesh(torch.nn.Module):

@@ -13,13 +13,12 @@ readers name the file, each bad field, the rule it breaks and the value it had.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from tactile_deploy.atomic import finite_or_null
 from tactile_deploy.fileformat import StrictModel
-from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.jsonfile import read_model_json
 from tactile_deploy.training.metrics import MeshMetrics
 
 
@@ -159,16 +158,10 @@ class TrainingHistory(StrictModel):
 
 
 def _load(path, model, what: str):
-    path = Path(path)
-    if not path.is_file():
-        raise TrainingRunFileError(f"training {what} {path} not found")
-    doc = read_json(path, TrainingRunFileError, f"a training run's {what}")
-    try:
-        return model.model_validate(doc)
-    except ValidationError as e:
-        raise TrainingRunFileError(validation_error_text(
-            path, e, f"training {what}", "written by `python -m tactile_deploy.training train`; the "
-            "format is in training/training_*.schema.json")) from None
+    return read_model_json(path, model, TrainingRunFileError, f"training {what}",
+                           "written by `python -m tactile_deploy.training train`; the format "
+                           "is in training/training_*.schema.json",
+                           expected=f"a training run's {what}")
 
 
 def load_training_metrics(path: str | os.PathLike) -> TrainingMetrics:

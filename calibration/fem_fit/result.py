@@ -4,13 +4,12 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from tactile_deploy.atomic import write_json
 from tactile_deploy.fileformat import StrictModel
-from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.jsonfile import read_model_json
 
 
 class FemResultError(ValueError):
@@ -50,12 +49,8 @@ def write_fem_result(path: str | os.PathLike, result: FemResult) -> None:
 
 def read_fem_result(path: str | os.PathLike) -> FemResult:
     """Read and validate ``fem.json`` (:class:`FemResultError` names the file and field)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FemResultError(f"{path} is missing: redo the FEM step (or `calibrate fem --out`)")
-    doc = read_json(path, FemResultError, "a JSON FEM result")
-    try:
-        return FemResult.model_validate(doc)
-    except ValidationError as e:
-        raise FemResultError(validation_error_text(
-            path, e, "FEM result", "the format is described by calibration/fem_fit/fem_result.schema.json")) from None
+    return read_model_json(
+        path, FemResult, FemResultError, "FEM result",
+        "the format is described by calibration/fem_fit/fem_result.schema.json",
+        expected="a JSON FEM result",
+        missing=f"{path} is missing: redo the FEM step (or `calibrate fem --out`)")

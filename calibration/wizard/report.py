@@ -12,13 +12,13 @@ from pathlib import Path
 
 from typing import Literal
 
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from tactile_deploy.atomic import write_json, write_text
 from tactile_deploy.calibration.wizard.config import WizardConfig
 from tactile_deploy.calibration.wizard.state import STEP_TITLES, STEPS
 from tactile_deploy.fileformat import StrictModel
-from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.jsonfile import read_model_json
 
 METRICS_NAME = "metrics.json"
 
@@ -45,17 +45,10 @@ class CalibrationMetrics(StrictModel):
 def load_calibration_metrics(path: str | os.PathLike) -> CalibrationMetrics:
     """Read and check a calibration's ``metrics.json`` (:class:`CalibrationMetricsError` naming
     the file, each bad field and the value it had)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationMetricsError(f"calibration metrics {path} not found")
-    doc = read_json(path, CalibrationMetricsError, "the calibration's metrics.json")
-    try:
-        return CalibrationMetrics.model_validate(doc)
-    except ValidationError as e:
-        raise CalibrationMetricsError(validation_error_text(
-            path, e, "calibration metrics",
-            "written by `tactile-deploy calibrate`; the format is metrics.schema.json in "
-            "calibration/wizard/")) from None
+    return read_model_json(path, CalibrationMetrics, CalibrationMetricsError,
+                           "calibration metrics", "written by `tactile-deploy calibrate`; the "
+                           "format is metrics.schema.json in calibration/wizard/",
+                           expected="the calibration's metrics.json")
 
 
 def _cell(v) -> str:

@@ -12,12 +12,11 @@ breaks and the value it had.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 
 from tactile_deploy.fileformat import StrictModel
-from tactile_deploy.jsonfile import read_json, validation_error_text
+from tactile_deploy.jsonfile import read_model_json
 
 REPORT_NAME = "report.json"
 
@@ -122,13 +121,7 @@ class AdaptationReport(StrictModel):
 def load_adaptation_report(path: str | os.PathLike) -> AdaptationReport:
     """Read and check an adaptation's ``report.json`` (:class:`AdaptationReportError` naming the
     file, each bad field and the value it had)."""
-    path = Path(path)
-    if not path.is_file():
-        raise AdaptationReportError(f"adaptation report {path} not found")
-    doc = read_json(path, AdaptationReportError, "an adaptation report")
-    try:
-        return AdaptationReport.model_validate(doc)
-    except ValidationError as e:
-        raise AdaptationReportError(validation_error_text(
-            path, e, "adaptation report", "written by `tactile-deploy adapt`; the format is "
-            "adaptation_report.schema.json in tactile_deploy/adapt/")) from None
+    return read_model_json(path, AdaptationReport, AdaptationReportError, "adaptation report",
+                           "written by `tactile-deploy adapt`; the format is "
+                           "adaptation_report.schema.json in tactile_deploy/adapt/",
+                           expected="an adaptation report")

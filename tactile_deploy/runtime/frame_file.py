@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, ValidationError
 
-from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.fileformat import StrictModel, read_npz_arrays
 from tactile_deploy.jsonfile import validation_error_text
 
 FRAME_FORMAT = "tactile-deploy.frame"
@@ -91,11 +91,7 @@ class FrameFile:
 def load_frame_npz(path: str | os.PathLike) -> FrameFile:
     """Read and check a ``mesh_NNNNNN.npz`` of ``tactile-deploy run``."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise FrameFileError(f"{path}: not a readable .npz file ({e})") from None
+    arrays = read_npz_arrays(path, FrameFileError)
     for name in ("vertices", "rest_vertices", "metadata"):
         if name not in arrays:
             raise FrameFileError(f"{path}: field {name!r} missing: expected vertices, "

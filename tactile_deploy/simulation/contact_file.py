@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
 from tactile_deploy.fem.material import Material
-from tactile_deploy.fileformat import StrictModel
+from tactile_deploy.fileformat import StrictModel, read_npz_arrays
 from tactile_deploy.indenters import ContactPose
 from tactile_deploy.jsonfile import validation_error_text
 
@@ -174,11 +174,7 @@ class ContactFile:
 def load_contact(path: str | os.PathLike) -> ContactFile:
     """Read and check a ``tactile-deploy simulate --out FILE.npz`` file."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise ContactFileError(f"{path}: not a readable .npz file ({e})") from None
+    arrays = read_npz_arrays(path, ContactFileError)
     missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise ContactFileError(f"{path}: field {missing[0]!r} missing: expected the arrays "
