@@ -183,6 +183,7 @@ def thin_layer_forces():
     return out
 
 
+@pytest.mark.slow
 def test_sphere_on_the_bonded_pad_matches_dimitriadis(thin_layer_forces):
     for (centre, d), force in thin_layer_forces.items():
         ref = dimitriadis_force(1.0, 0.48, 4.0, d, 3.0)
@@ -194,6 +195,7 @@ def test_sphere_on_the_bonded_pad_matches_dimitriadis(thin_layer_forces):
     assert on == pytest.approx(off, rel=0.01)
 
 
+@pytest.mark.slow
 def test_sphere_force_is_smooth_in_depth(thin_layer_forces):
     # The local log-log slope between depths follows the reference's own slope (piecewise-
     # affine forces of a node-resolved contact gave slopes 1.0-3.9).
@@ -226,6 +228,7 @@ def friction_solutions():
     return out
 
 
+@pytest.mark.slow
 def test_coulomb_limits_are_frictionless_and_stick(friction_solutions):
     s = friction_solutions
     for limit, ref in (("mu_small", "frictionless"), ("mu_large", "stick")):
@@ -243,6 +246,7 @@ def test_coulomb_limits_are_frictionless_and_stick(friction_solutions):
     assert abs(s["stick"].force_n / s["frictionless"].force_n - 1) > 1e-3
 
 
+@pytest.mark.slow
 def test_finite_friction_has_a_stick_core_and_a_slip_rim(friction_solutions):
     sol = friction_solutions["mu_0.3"]
     xy = sol.mesh.vertices[: sol.mesh.n_plane, :2] - np.array([0.2, -0.1])
@@ -265,6 +269,7 @@ def test_finite_friction_has_a_stick_core_and_a_slip_rim(friction_solutions):
 
 
 # ------------------------------------------------------------------ continuous-surface contact
+@pytest.mark.slow
 @pytest.mark.parametrize("name, model", [("sphere_r2", "neo-hookean"), ("cone", "linear")])
 def test_no_penetration_anywhere_on_the_surface(name, model):
     ind = get_indenter(name)
