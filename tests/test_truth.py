@@ -37,6 +37,7 @@ from tactile_deploy.fem.truth import (
 from tactile_deploy.fem.truth_mesh import build_truth_mesh
 from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.pad.geometry import PadGeometry
+from references import dimitriadis_force
 
 # A box: its walls are planes, so their faces are exactly vertical and a homogeneous field is
 # the discrete solution (a polygonal cylinder's wall faces tilt).
@@ -159,18 +160,6 @@ def test_neo_hookean_block_at_40_percent_strain_matches_the_closed_form(block_me
 
 
 # ---------------------------------------------------------------- bonded thin layer (sphere)
-def dimitriadis_force(E, nu, R, d, h):
-    """Bonded thin-layer sphere indentation, Dimitriadis et al. 2002, eq. (12)."""
-    chi = math.sqrt(R * d) / h
-    a0 = -(1.2876 - 1.4678 * nu + 1.3442 * nu**2) / (1 - nu)
-    b0 = (0.6387 - 1.0277 * nu + 1.5164 * nu**2) / (1 - nu)
-    pi = math.pi
-    f = (1 - 2 * a0 / pi * chi + 4 * a0**2 / pi**2 * chi**2
-         - 8 / pi**3 * (a0**3 + 4 * pi**2 * b0 / 15) * chi**3
-         + 16 * a0 / pi**4 * (a0**3 + 3 * pi**2 * b0 / 5) * chi**4)
-    return 4 / 3 * E / (1 - nu**2) * math.sqrt(R) * d**1.5 * f
-
-
 @pytest.fixture(scope="module")
 def thin_layer_forces():
     """Force of a 4 mm sphere (linear gel, frictionless) on the 3 mm bonded pad: apex on a

@@ -1,0 +1,43 @@
+"""Published closed forms the tests compare against, and the import check of the modules under
+tests/ that are written without the product's code.
+
+Nothing here imports the product.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+import sys
+from pathlib import Path
+
+PRODUCT_ROOTS = {"tactile_deploy", "calibration", "training", "bench", "tests"}
+
+
+def dimitriadis_force(E, nu, R, d, h):
+    """Force (N with E in MPa and lengths in mm) of a rigid sphere of radius ``R`` pressed ``d``
+    into an elastic layer of thickness ``h`` bonded to a rigid base: Dimitriadis et al. 2002
+    (Biophys. J. 82:2798), eq. (12), the bonded case."""
+    chi = math.sqrt(R * d) / h
+    a0 = -(1.2876 - 1.4678 * nu + 1.3442 * nu**2) / (1 - nu)
+    b0 = (0.6387 - 1.0277 * nu + 1.5164 * nu**2) / (1 - nu)
+    pi = math.pi
+    f = (1 - 2 * a0 / pi * chi + 4 * a0**2 / pi**2 * chi**2
+         - 8 / pi**3 * (a0**3 + 4 * pi**2 * b0 / 15) * chi**3
+         + 16 * a0 / pi**4 * (a0**3 + 3 * pi**2 * b0 / 5) * chi**4)
+    return 4 / 3 * E / (1 - nu**2) * math.sqrt(R) * d**1.5 * f
+
+
+def imports_beyond(module_file: Path, allowed: set[str]) -> tuple[set[str], set[str]]:
+    """The top-level names a module imports that are neither the standard library nor
+    ``allowed``, and those that are the product's own: (outside, product); both must be empty
+    for a module that stands independent of the product."""
+    tree = ast.parse(Path(module_file).read_text())
+    roots = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            roots.add((node.module or "").split(".")[0])
+    outside = {r for r in roots if r not in sys.stdlib_module_names} - allowed
+    return outside, roots & PRODUCT_ROOTS
