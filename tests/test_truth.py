@@ -32,11 +32,11 @@ from tactile_deploy.fem.truth import (
     SolveSettings,
     TruthSolver,
     indenter_field,
-    surface_penetration,
 )
 from tactile_deploy.fem.truth_mesh import build_truth_mesh
 from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.pad.geometry import PadGeometry
+from contact_checks import check_resolved_contact
 from references import dimitriadis_force
 
 # A box: its walls are planes, so their faces are exactly vertical and a homogeneous field is
@@ -259,33 +259,14 @@ def test_finite_friction_has_a_stick_core_and_a_slip_rim(friction_solutions):
 
 # ------------------------------------------------------------------ continuous-surface contact
 @pytest.mark.slow
-@pytest.mark.parametrize("name, model", [("sphere_r2", "neo-hookean"), ("cone", "linear")])
-def test_no_penetration_anywhere_on_the_surface(name, model):
-    ind = get_indenter(name)
+def test_no_penetration_anywhere_on_the_cones_surface():
+    """The 90-degree cone pressed 0.8 mm (linear gel; measured: 5.35 um next to the tip, whose
+    envelope is sampled every 25 um). The 2 mm ball is checked pressed 1.0 mm, neo-Hookean, on
+    the solution compared with the independent FEM (tests/test_truth_independent.py)."""
+    ind = get_indenter("cone")
     pose = ContactPose(x_mm=0.3, y_mm=-0.2, theta_deg=0.0, depth_mm=0.8)
-    solver = TruthSolver(SMALL_PAD, Material(E_mpa=0.3, nu=0.48), model=model)
-    field = indenter_field(ind, pose)
+    solver = TruthSolver(SMALL_PAD, Material(E_mpa=0.3, nu=0.48), model="linear")
     sol = solver.solve(ind, pose)
-    geometric = model != "linear"
-    pen, _ = surface_penetration(sol, field, pitch_mm=0.01, geometric=geometric)
-    X = sol.mesh.vertices[: sol.mesh.n_plane]
-    tip_depth = -sol.vertices_mm[: sol.mesh.n_plane, 2].min()
-    print(f"{name}: largest penetration {pen * 1e3:.2f} um, deepest surface point "
-          f"{tip_depth:.4f} mm, force {sol.force_n:.4f} N")
-    # 10 um anywhere, vertically (measured: 5.02 um at the steep rim of the 2 mm ball, where the
-    # chords of the fine mesh cut the sphere; 5.35 um next to the cone's tip, whose envelope is
-    # sampled every 25 um)
-    assert pen <= 10e-3
-    assert np.all(sol.normal_force_n >= 0)  # no tensile traction
-    # gap and force are complementary at every node
-    xy = X[:, :2] + (sol.displacements_mm[: sol.mesh.n_plane, :2] if geometric else 0.0)
-    gap = -field(xy) - sol.vertices_mm[: sol.mesh.n_plane, 2]
-    gap = np.where(np.isfinite(gap), gap, 1.0)
-    # (a sensing node's own normal force, and a feature point's force; the points' forces reach
-    # their triangle's corners, which may lie below the indenter between its features)
-    own = sol.info["node_normal_force_n"] > 1e-6 * sol.force_n
-    assert np.all(np.abs(gap[own]) < 1e-3)
-    loaded = sol.info["point_force_n"] > 1e-6 * sol.force_n
-    assert np.all(np.abs(sol.info["point_gap_mm"][loaded]) < 1e-3)
-    if name == "cone":
-        assert tip_depth >= 0.78
+    _, tip_depth = check_resolved_contact(sol, indenter_field(ind, pose), geometric=False,
+                                          label="cone")
+    assert tip_depth >= 0.78

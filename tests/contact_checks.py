@@ -1,0 +1,35 @@
+"""Checks of a resolved contact solution against its indenter's surface, shared by the truth
+tests: no penetration anywhere on the continuous surface, no tensile traction, gap and force
+complementary at every loaded node and feature point."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def check_resolved_contact(sol, field, geometric: bool, label: str) -> tuple[float, float]:
+    """Assert the contact conditions of the truth solution ``sol`` against the intrusion
+    ``field`` (indenter surface depth, mm, sensor frame; ``geometric``: gaps at the current
+    positions). Returns (largest penetration mm, deepest surface point mm)."""
+    from tactile_deploy.fem.truth import surface_penetration
+
+    n = sol.mesh.n_plane
+    pen, _ = surface_penetration(sol, field, pitch_mm=0.01, geometric=geometric)
+    tip_depth = -sol.vertices_mm[:n, 2].min()
+    print(f"{label}: largest penetration {pen * 1e3:.2f} um, deepest surface point "
+          f"{tip_depth:.5f} mm, force {sol.force_n:.4f} N")
+    # 10 um anywhere, vertically, on a 10 um grid and at every node
+    assert pen <= 10e-3
+    assert np.all(sol.normal_force_n >= 0)  # no tensile traction
+    # gap and force are complementary at every node
+    X = sol.mesh.vertices[:n]
+    xy = X[:, :2] + (sol.displacements_mm[:n, :2] if geometric else 0.0)
+    gap = -field(xy) - sol.vertices_mm[:n, 2]
+    gap = np.where(np.isfinite(gap), gap, 1.0)
+    # (a sensing node's own normal force, and a feature point's force; the points' forces reach
+    # their triangle's corners, which may lie below the indenter between its features)
+    own = sol.info["node_normal_force_n"] > 1e-6 * sol.force_n
+    assert np.all(np.abs(gap[own]) < 1e-3)
+    loaded = sol.info["point_force_n"] > 1e-6 * sol.force_n
+    assert np.all(np.abs(sol.info["point_gap_mm"][loaded]) < 1e-3)
+    return pen, tip_depth
