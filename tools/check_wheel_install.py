@@ -22,6 +22,8 @@ import sys
 import sysconfig
 from pathlib import Path
 
+from install_sizes import size_of  # tools/, beside this script
+
 #: Import names the base install must not bring (they belong to extras).
 EXTRAS_ONLY = ("torch", "warp", "matplotlib", "questionary", "serial", "onnx", "mcap", "rosbags", "rerun")
 #: Tools of the environment itself, not counted in the install's size.
@@ -39,13 +41,7 @@ def installed_sizes() -> dict[str, int]:
         name = dist.metadata["Name"]
         if name.lower() in NOT_COUNTED:
             continue
-        total = 0
-        for f in dist.files or []:
-            try:
-                total += Path(dist.locate_file(f)).stat().st_size
-            except OSError:
-                pass
-        out[name] = total
+        out[name] = size_of(dist)
     return out
 
 
