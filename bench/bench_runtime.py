@@ -121,12 +121,12 @@ def torch_reference(model_path, bundle: Path | None = None):
     1e-4 mm, or the ONNX model itself to 0.1 mm (int8) when there is no twin."""
     try:
         import numpy as np
-        import onnxruntime as ort
         import torch
     except ImportError as e:
         return None, f"torch not installed ({e})"
-    meta = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"]
-                                ).get_modelmeta().custom_metadata_map
+    from tactile_deploy.onnx_runtime.session import make_session
+
+    meta = make_session(model_path, providers="cpu").get_modelmeta().custom_metadata_map
     try:
         from tactile_deploy.training.export import deploy_module
         from tactile_deploy.training.train import load_bundle
@@ -139,8 +139,7 @@ def torch_reference(model_path, bundle: Path | None = None):
     probe = np.zeros((2, 1, 128, 128), np.float32)
     probe[0, 0, 50:70, 50:70] = 0.5
     probe[1, 0, 30:40, 80:100] = 0.8
-    want = ort.InferenceSession(str(target), providers=["CPUExecutionProvider"]).run(
-        ["displacement"], {"depth": probe})[0]
+    want = make_session(target, providers="cpu").run(["displacement"], {"depth": probe})[0]
     committed = [p for p in (Path(model_path).with_suffix(".pt"),) if p.is_file()]
     candidates = [bundle] if bundle is not None else committed + sorted(
         (ROOT / "out" / "predictor").glob("*/model.pt"), key=lambda p: -p.stat().st_mtime)
