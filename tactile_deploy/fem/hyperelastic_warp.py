@@ -55,6 +55,14 @@ def _kernels():
     wp.config.log_level = wp.LOG_ERROR
     wp.config.quiet = True
 
+    @wp.func
+    def deformation_gradient(u: wp.array(dtype=wp.vec3d), idx: wp.vec4i, g0: wp.vec3d,
+                             g1: wp.vec3d, g2: wp.vec3d, g3: wp.vec3d):
+        """F = I + sum_k u_k (x) g_k of one linear tet (g_k: shape-function gradients, 1/mm)."""
+        F = wp.identity(3, dtype=wp.float64)
+        F = F + wp.outer(u[idx[0]], g0) + wp.outer(u[idx[1]], g1)
+        return F + wp.outer(u[idx[2]], g2) + wp.outer(u[idx[3]], g3)
+
     @wp.kernel(enable_backward=False)
     def deviatoric_forces(u: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4i),
                           grads: wp.array(dtype=wp.mat33d, ndim=2),
@@ -68,9 +76,7 @@ def _kernels():
         g1 = grads[t, 0][1]
         g2 = grads[t, 0][2]
         g3 = grads[t, 1][0]
-        F = wp.identity(3, dtype=wp.float64)
-        F = F + wp.outer(u[idx[0]], g0) + wp.outer(u[idx[1]], g1)
-        F = F + wp.outer(u[idx[2]], g2) + wp.outer(u[idx[3]], g3)
+        F = deformation_gradient(u, idx, g0, g1, g2, g3)
         J = wp.determinant(F)
         Fit = wp.transpose(wp.inverse(F))
         i1 = wp.ddot(F, F)
@@ -100,9 +106,7 @@ def _kernels():
         g1 = grads[t, 0][1]
         g2 = grads[t, 0][2]
         g3 = grads[t, 1][0]
-        F = wp.identity(3, dtype=wp.float64)
-        F = F + wp.outer(u[idx[0]], g0) + wp.outer(u[idx[1]], g1)
-        F = F + wp.outer(u[idx[2]], g2) + wp.outer(u[idx[3]], g3)
+        F = deformation_gradient(u, idx, g0, g1, g2, g3)
         Fit = wp.transpose(wp.inverse(F))
         p = wp.float64(0.0)
         for k in range(4):
