@@ -458,7 +458,7 @@ def test_plugin_step_fine_tunes_the_readout_on_the_unit(wizard_copy, sensor):
     folder, out, _, _ = wizard_copy
     base = ROOT / "exported" / "gelslim_readout.onnx"
     cfg = folder / "readout_tuned.json"
-    cfg.write_text(json.dumps({**CONFIG, "readout": str(base), "readout_steps": 800}))
+    cfg.write_text(json.dumps({**CONFIG, "readout": str(base), "readout_steps": 400}))
     res = _invoke("--sensor", "acme", "--source", f"virtual:{SENSOR}", "--rig", "simulated",
                   "--config", cfg, "--out", out, "--yes", "--redo", "plugin")
     assert res.exit_code == 0, res.output
