@@ -192,6 +192,43 @@ def test_noise_is_estimated_under_smooth_structure():
     assert 0 < est.se_mm < 0.0002
 
 
+def test_static_relief_is_found_in_the_mean_of_the_maps_and_nothing_else_is():
+    """The static test on synthetic residuals (40 maps, 4 um white noise, contacts as 1.5 mm
+    discs 0.5 mm deep): the z-map of effect-free residuals has unit spread (its standard error is
+    right) and no blob; a 10 um grain 0.5 mm wide in every map (1.7 % of the noise's energy) is
+    found where it is; 50 um of leftover under every contact (moving with it: static if the
+    contacts were not left out) is not static."""
+    from tactile_deploy.calibration.discrepancy.static import static_structure
+    from tactile_deploy.camera.depth import DepthCamera
+
+    cam = DepthCamera()
+    pix = cam.pixel_centres_mm()
+    x, y = pix[..., 0], pix[..., 1]
+    pad = np.hypot(x, y) < 17.0
+    rng = np.random.default_rng(11)
+    n = 40
+    centres = rng.uniform(-8.0, 8.0, (n, 2))
+    disc = np.stack([np.hypot(x - cx, y - cy) < 1.5 for cx, cy in centres])
+    base = np.where(disc, 0.5, 0.0)
+    noise = np.where(pad, rng.normal(0.0, 0.004, (n, 128, 128)), 0.0)
+
+    null = static_structure(noise, base, pad, cam, 0.004)
+    assert not null.present
+    assert np.std(null.z[null.tested]) == pytest.approx(1.0, abs=0.03)
+    assert null.tested.sum() > 0.95 * pad.sum()
+
+    grain = 0.010 * np.exp(-((x - 3.0) ** 2 + (y + 2.0) ** 2) / (2 * 0.5**2))
+    found = static_structure(noise + np.where(pad, grain, 0.0)[None], base, pad, cam, 0.004)
+    assert found.present and len(found.blobs) == 1
+    blob = found.blobs[0]
+    assert np.hypot(blob["x_mm"] - 3.0, blob["y_mm"] + 2.0) < 0.15
+    assert blob["peak_um"] == pytest.approx(10.0, abs=3.0)
+
+    leftover = np.where(disc, 0.050, 0.0)
+    assert not static_structure(noise + leftover, base, pad, cam, 0.004).present
+    assert static_structure(noise + leftover, 0.0 * base, pad, cam, 0.004).present
+
+
 def test_view_warp_is_identity_at_the_null_value_and_stretches_for_pixel_scale(small_sim):
     from tactile_deploy.calibration.discrepancy.reproduce import ContactReproducer
     from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm

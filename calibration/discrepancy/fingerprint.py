@@ -45,6 +45,7 @@ class Fingerprint:
     modes: np.ndarray              # (3, 41, 41)
     outside_structure: bool = False
     notes: list = field(default_factory=list)
+    static: object = None          # StaticStructure of the residual after the best candidate
 
 
 def _systematic(sq_sum: float, count: float, sigma: float) -> float:
