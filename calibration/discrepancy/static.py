@@ -10,13 +10,18 @@ The test, on the residual ``r_s`` (mm) of every sample after the best candidate 
 maps with the named effect; the sensor model's maps when none is named), on the standard grid
 (rows: +y down, columns: +x, sensor frame, mm):
 
-* every sample contributes at the pad pixels away from its contact: beyond ``CONTACT_MARGIN``
+* every sample contributes at the pixels of its region of interest (where the maps with the
+  candidate are known: the tables' ROI) away from its contact: beyond ``CONTACT_MARGIN``
   contact radii of the pixels the contact presses (its map above a tenth of its peak), where a
   static relief is not pressed flat and where a candidate's leftover error is largest;
 * per pixel, the mean residual over the ``n`` samples that contribute there and its standard
   error from the noise, ``sqrt(sum_s v_s) / n`` with ``v_s`` the pixel noise variance (white
   noise: sigma^2 with sigma taken ``SIGMA_SE`` standard errors high; imaged frames: each
-  contact's noise realisations at that pixel, their estimation error added the same way);
+  contact's noise realisations at that pixel, their estimation error added the same way), or
+  from the samples' own scatter about that mean, ``s / sqrt(n)``, where it is larger: the noise
+  is the sensor model's, and where the model lacks the effect it can be too small (a domed
+  gel's frames carry 3x the flat model's imaged noise toward the rim); a relief common to
+  every map does not add to the scatter;
 * z = mean / standard error; a pixel is above the threshold when ``|z|`` exceeds the
   Bonferroni bound of a family-wise false-alarm probability ``FAMILY_ALPHA`` over the pixels
   tested (those with at least ``MIN_SAMPLES`` samples): ``t = Phi^-1(1 - alpha / 2M)``, 5.3 for
@@ -55,13 +60,14 @@ SIGMA_SE = 2.0
 class StaticStructure:
     """Outcome of :func:`static_structure`.
 
-    mean_mm : (H, W) mean residual per pixel (0 where untested); z : (H, W) its z-score (0 where
-    untested); tested : (H, W) bool pixels tested; threshold_z : the Bonferroni bound; blobs :
+    mean_mm : (H, W) mean residual per pixel (0 where untested); count : (H, W) samples it is
+    the mean of; z : (H, W) its z-score (0 where untested); tested : (H, W) bool pixels tested; threshold_z : the Bonferroni bound; blobs :
     per blob above the threshold (strongest first) its centre x_mm, y_mm (sensor frame), peak
     mean residual peak_um, peak |z|, pixels and area_mm2."""
 
     present: bool
     mean_mm: np.ndarray
+    count: np.ndarray
     z: np.ndarray
     tested: np.ndarray
     threshold_z: float
@@ -78,7 +84,8 @@ class StaticStructure:
 def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.ndarray,
                      camera, sigma_mm: float, sigma_se_mm: float = 0.0,
                      noise_var_mm2: np.ndarray | None = None,
-                     noise_var_rel_se: float = 0.0) -> StaticStructure:
+                     noise_var_rel_se: float = 0.0,
+                     region: np.ndarray | None = None) -> StaticStructure:
     """The static test of the module docstring.
 
     residual_mm : (N, H, W) measured minus the model's (with the best candidate) maps, mm;
@@ -86,7 +93,8 @@ def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.
     camera : the DepthCamera of the grid; sigma_mm, sigma_se_mm : white pixel noise and the
     standard error of its estimate; noise_var_mm2 : (N, H, W) per-sample pixel noise variance
     (imaged frames: from the contact's realisations; overrides sigma_mm) and noise_var_rel_se
-    the relative standard error of the summed variance.
+    the relative standard error of the summed variance; region : (N, H, W) bool pixels where
+    ``residual_mm`` is known (None: the whole pad).
     """
     r = np.asarray(residual_mm, np.float64)
     n, h, w = r.shape
@@ -104,6 +112,8 @@ def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.
             continue
         a = math.sqrt(pressed.sum() * pitch**2 / math.pi)  # contact radius, mm
         use[s] = pad_mask & (distance_transform_edt(~pressed) * pitch > CONTACT_MARGIN * a)
+    if region is not None:
+        use &= np.asarray(region, bool)
     count = use.sum(axis=0)
     tested = pad_mask & (count >= MIN_SAMPLES)
     total = np.where(use, r, 0.0).sum(axis=0)
@@ -115,6 +125,10 @@ def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.
         var_sum = np.where(use, noise_var_mm2, 0.0).sum(axis=0) * (
             1.0 + SIGMA_SE * noise_var_rel_se)
     se = np.sqrt(np.maximum(var_sum, 1e-300)) / np.maximum(count, 1)
+    # the samples' scatter about the mean, per pixel (n - 1 degrees of freedom)
+    sq = np.where(use, (r - mean[None]) ** 2, 0.0).sum(axis=0)
+    scatter = np.sqrt(sq / np.maximum(count - 1, 1) / np.maximum(count, 1))
+    se = np.maximum(se, scatter)
     z = np.where(tested, mean / se, 0.0)
     m = int(tested.sum())
     t = float(norm.isf(FAMILY_ALPHA / (2.0 * max(m, 1))))
@@ -133,4 +147,4 @@ def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.
                       "peak_um": float(1e3 * mean[sel][i]), "z": float(zz[i]),
                       "pixels": size, "area_mm2": float(size * pitch**2)})
     blobs.sort(key=lambda b: -b["z"])
-    return StaticStructure(bool(blobs), mean, z, tested, t, blobs)
+    return StaticStructure(bool(blobs), mean, count, z, tested, t, blobs)

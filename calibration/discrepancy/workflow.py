@@ -261,7 +261,8 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
             verification = verify_effect(repro, tables, selection, depth, sample_contact,
                                          measured, opts, advance)
     timings["verification"] = time.perf_counter() - t2
-    fingerprint.static = static_test(tables, sample_contact, depth, verification, noise, repro)
+    fingerprint.static = static_test(tables, sample_contact, depth, verification, noise, repro,
+                                     roi_masks)
     fingerprint.summary["static_structure"] = fingerprint.static.summary()
     timings["static"] = time.perf_counter() - t2 - timings["verification"]
     sigma2 = noise.sigma_mm**2
@@ -347,11 +348,12 @@ def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks
 
 def static_test(tables: ResponseTables, sample_contact: np.ndarray, depth: np.ndarray,
                 verification: Verification | None, noise: NoiseEstimate,
-                repro: ContactReproducer) -> StaticStructure:
+                repro: ContactReproducer, roi_masks: np.ndarray) -> StaticStructure:
     """Structure common to every map (static.py) in the residual after the best candidate:
-    the held-out maps with the named effect, or the sensor model's maps when none is named.
-    With imaged frames each sample's pixel noise variance comes from its contact's noise
-    realisations."""
+    the held-out maps with the named effect, or the sensor model's maps when none is named, on
+    each sample's region of interest ``roi_masks`` (N, H, W) (where those maps are the
+    candidate's). With imaged frames each sample's pixel noise variance comes from its
+    contact's noise realisations."""
     base = tables.base[sample_contact]
     after = base if verification is None else verification.after_mm
     var = None
@@ -363,7 +365,7 @@ def static_test(tables: ResponseTables, sample_contact: np.ndarray, depth: np.nd
         j = min(len(m) for m in tables.noise_maps)
         rel_se = math.sqrt(2.0 / max(len(sample_contact) * (j - 1), 1))
     return static_structure(depth - after, base, repro.pad_mask, repro.camera, noise.sigma_mm,
-                            noise.se_mm, var, rel_se)
+                            noise.se_mm, var, rel_se, roi_masks)
 
 
 def _second_change(tables: ResponseTables, selection: Selection, sample_contact):
