@@ -61,9 +61,10 @@ class StaticStructure:
     """Outcome of :func:`static_structure`.
 
     mean_mm : (H, W) mean residual per pixel (0 where untested); count : (H, W) samples it is
-    the mean of; z : (H, W) its z-score (0 where untested); tested : (H, W) bool pixels tested; threshold_z : the Bonferroni bound; blobs :
-    per blob above the threshold (strongest first) its centre x_mm, y_mm (sensor frame), peak
-    mean residual peak_um, peak |z|, pixels and area_mm2."""
+    the mean of; z : (H, W) its z-score (0 where untested); tested : (H, W) bool pixels tested;
+    threshold_z : the Bonferroni bound; blobs : per blob above the threshold (strongest first)
+    its centre x_mm, y_mm (sensor frame), peak mean residual peak_um, peak |z|, pixels and
+    area_mm2."""
 
     present: bool
     mean_mm: np.ndarray
