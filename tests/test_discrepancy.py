@@ -100,6 +100,34 @@ def test_effect_left_out_of_the_library_is_unexplained(setup):
     assert v.fingerprint["where_rms_mm"]["inside_contact"] > 0
 
 
+def test_static_grain_beside_a_named_effect_keeps_the_effect_and_is_reported(setup, small_sim):
+    """A zero offset (in the library, the same for every contact) and a 15 um grain 0.6 mm wide
+    on the gel in every map: the offset is named from the contacts, the grain, where no
+    candidate reaches it, is reported as structure that remains (with where it is)."""
+    import dataclasses
+
+    from tactile_deploy.camera.depth import DepthCamera
+
+    sensor, contacts, tables = setup
+    data = hidden_effect_data(sensor, [EffectSpec(name="zero_offset",
+                                                  params={"offset_mm": 0.02})],
+                              contacts, NOISE_MM, 12)
+    cam = DepthCamera()
+    pad = cam.render(small_sim.mesh, small_sim.mesh.vertices).mask
+    pix = cam.pixel_centres_mm()
+    grain = 0.015 * np.exp(-((pix[..., 0] - 6.5) ** 2 + (pix[..., 1] + 4.0) ** 2) / (2 * 0.6**2))
+    data = dataclasses.replace(data, depth_mm=(data.depth_mm + np.where(pad, grain, 0.0)[None]
+                                               ).astype(np.float32))
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    print(v.message)
+    assert v.verdict == "effect" and v.effect == "zero_offset"
+    assert v.parameters["offset_mm"] == pytest.approx(0.02, abs=TOLERANCE["offset_mm"])
+    assert v.remaining_structure and "static relief" in v.message
+    blob = v.fingerprint["static_structure"]["blobs"][0]
+    # located to a pixel (0.27 mm): the blob's z-weighted centre at z 10 over 20 maps
+    assert np.hypot(blob["x_mm"] - 6.5, blob["y_mm"] + 4.0) < 35.0 / 128
+
+
 def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
     sensor, contacts, tables = setup
     hidden = [EffectSpec(name="dome", params={"height_mm": 0.3}),
