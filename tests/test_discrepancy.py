@@ -128,6 +128,32 @@ def test_static_grain_beside_a_named_effect_keeps_the_effect_and_is_reported(set
     assert np.hypot(blob["x_mm"] - 6.5, blob["y_mm"] + 4.0) < 35.0 / 128
 
 
+def test_refinement_goes_down_the_list_until_a_candidate_explains_the_gap(setup, monkeypatch):
+    """With no candidate refined up front (REFINE_CANDIDATES = 0), the refinement before the
+    selection still goes down the candidates, best first, and stops at the first whose
+    re-centred table removes 75 % of the excess: a hidden dome, refined once before the
+    selection (last of that walk) and once in the verification."""
+    from tactile_deploy.calibration.discrepancy import workflow
+
+    sensor, contacts, tables = setup
+    data = hidden_effect_data(sensor, [EffectSpec(name="dome", params={"height_mm": 0.3})],
+                              contacts, NOISE_MM, 13)
+    refined = []
+    real = workflow.refine_table
+
+    def recording(repro, tables, table, *args, **kwargs):
+        refined.append(table.name)
+        return real(repro, tables, table, *args, **kwargs)
+
+    monkeypatch.setattr(workflow, "refine_table", recording)
+    monkeypatch.setattr(workflow, "REFINE_CANDIDATES", 0)
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    print(refined, v.message)
+    assert v.verdict == "effect" and v.effect == "dome"
+    assert v.parameters["height_mm"] == pytest.approx(0.3, abs=TOLERANCE["height_mm"])
+    assert refined[-2:] == ["dome", "dome"] and refined.count("dome") == 2
+
+
 def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
     sensor, contacts, tables = setup
     hidden = [EffectSpec(name="dome", params={"height_mm": 0.3}),
