@@ -180,7 +180,8 @@ def run_dataset(sensor, tables, contacts, clean, clean_forces, effect, params, s
              "expected": ind.EXPECTED.get(effect, "none"), "parameters": v.parameters,
              "gap_before_mm": v.gap_before_mm, "gap_after_mm": v.gap_after_mm,
              "explained": v.explained_fraction, "time_s": time.perf_counter() - t0,
-             "contacts_left_out": len(contacts) - len(ok)}
+             "contacts_left_out": len(contacts) - len(ok),
+             "static": v.fingerprint.get("static_structure")}
     if v.verdict == "effect" and effect in ind.EXPECTED and v.effect == ind.EXPECTED[effect]:
         entry["parameters_ok"], entry["errors"] = parameter_check(effect, params, v.effect,
                                                                   v.parameters, camera)

@@ -100,6 +100,60 @@ def test_effect_left_out_of_the_library_is_unexplained(setup):
     assert v.fingerprint["where_rms_mm"]["inside_contact"] > 0
 
 
+def test_static_grain_beside_a_named_effect_keeps_the_effect_and_is_reported(setup, small_sim):
+    """A zero offset (in the library, the same for every contact) and a 15 um grain 0.6 mm wide
+    on the gel in every map: the offset is named from the contacts, the grain, where no
+    candidate reaches it, is reported as structure that remains (with where it is)."""
+    import dataclasses
+
+    from tactile_deploy.camera.depth import DepthCamera
+
+    sensor, contacts, tables = setup
+    data = hidden_effect_data(sensor, [EffectSpec(name="zero_offset",
+                                                  params={"offset_mm": 0.02})],
+                              contacts, NOISE_MM, 12)
+    cam = DepthCamera()
+    pad = cam.render(small_sim.mesh, small_sim.mesh.vertices).mask
+    pix = cam.pixel_centres_mm()
+    grain = 0.015 * np.exp(-((pix[..., 0] - 6.5) ** 2 + (pix[..., 1] + 4.0) ** 2) / (2 * 0.6**2))
+    data = dataclasses.replace(data, depth_mm=(data.depth_mm + np.where(pad, grain, 0.0)[None]
+                                               ).astype(np.float32))
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    print(v.message)
+    assert v.verdict == "effect" and v.effect == "zero_offset"
+    assert v.parameters["offset_mm"] == pytest.approx(0.02, abs=TOLERANCE["offset_mm"])
+    assert v.remaining_structure and "static relief" in v.message
+    blob = v.fingerprint["static_structure"]["blobs"][0]
+    # located to a pixel (0.27 mm): the blob's z-weighted centre at z 10 over 20 maps
+    assert np.hypot(blob["x_mm"] - 6.5, blob["y_mm"] + 4.0) < 35.0 / 128
+
+
+def test_refinement_goes_down_the_list_until_a_candidate_explains_the_gap(setup, monkeypatch):
+    """With no candidate refined up front (REFINE_CANDIDATES = 0), the refinement before the
+    selection still goes down the candidates, best first, and stops at the first whose
+    re-centred table removes 75 % of the excess: a hidden dome, refined once before the
+    selection (last of that walk) and once in the verification."""
+    from tactile_deploy.calibration.discrepancy import workflow
+
+    sensor, contacts, tables = setup
+    data = hidden_effect_data(sensor, [EffectSpec(name="dome", params={"height_mm": 0.3})],
+                              contacts, NOISE_MM, 13)
+    refined = []
+    real = workflow.refine_table
+
+    def recording(repro, tables, table, *args, **kwargs):
+        refined.append(table.name)
+        return real(repro, tables, table, *args, **kwargs)
+
+    monkeypatch.setattr(workflow, "refine_table", recording)
+    monkeypatch.setattr(workflow, "REFINE_CANDIDATES", 0)
+    v = find_discrepancy(sensor, data, OPTS, tables=tables).verdict
+    print(refined, v.message)
+    assert v.verdict == "effect" and v.effect == "dome"
+    assert v.parameters["height_mm"] == pytest.approx(0.3, abs=TOLERANCE["height_mm"])
+    assert refined[-2:] == ["dome", "dome"] and refined.count("dome") == 2
+
+
 def test_two_effects_are_found_in_turn(setup, small_sim, tmp_path):
     sensor, contacts, tables = setup
     hidden = [EffectSpec(name="dome", params={"height_mm": 0.3}),
@@ -190,6 +244,51 @@ def test_noise_is_estimated_under_smooth_structure():
     est = estimate_noise(res, mask)
     assert est.sigma_mm == pytest.approx(0.004, rel=0.02)
     assert 0 < est.se_mm < 0.0002
+
+
+def test_static_relief_is_found_in_the_mean_of_the_maps_and_nothing_else_is():
+    """The static test on synthetic residuals (40 maps, 4 um white noise, contacts as 1.5 mm
+    discs 0.5 mm deep): the mean of effect-free residuals has the noise's spread over the square
+    root of the samples (its standard error is right) and no blob; a 10 um grain 0.5 mm wide in every map (1.7 % of the noise's energy) is
+    found where it is; 50 um of leftover under every contact (moving with it) is not static."""
+    from tactile_deploy.calibration.discrepancy.static import static_structure
+    from tactile_deploy.camera.depth import DepthCamera
+
+    cam = DepthCamera()
+    pix = cam.pixel_centres_mm()
+    x, y = pix[..., 0], pix[..., 1]
+    pad = np.hypot(x, y) < 17.0
+    rng = np.random.default_rng(11)
+    n = 40
+    centres = rng.uniform(-8.0, 8.0, (n, 2))
+    disc = np.stack([np.hypot(x - cx, y - cy) < 1.5 for cx, cy in centres])
+    base = np.where(disc, 0.5, 0.0)
+    noise = np.where(pad, rng.normal(0.0, 0.004, (n, 128, 128)), 0.0)
+
+    null = static_structure(noise, base, pad, cam, 0.004)
+    assert not null.present
+    # the mean's spread is the noise's over sqrt(samples); z <= mean / that (the samples' own
+    # scatter replaces it where larger)
+    t = null.tested
+    assert np.std(null.mean_mm[t] * np.sqrt(null.count[t])) == pytest.approx(0.004, rel=0.03)
+    assert 0.9 < np.std(null.z[t]) <= 1.0
+    assert null.tested.sum() > 0.95 * pad.sum()
+
+    grain = 0.010 * np.exp(-((x - 3.0) ** 2 + (y + 2.0) ** 2) / (2 * 0.5**2))
+    found = static_structure(noise + np.where(pad, grain, 0.0)[None], base, pad, cam, 0.004)
+    assert found.present and len(found.blobs) == 1
+    blob = found.blobs[0]
+    assert np.hypot(blob["x_mm"] - 3.0, blob["y_mm"] + 2.0) < 0.15
+    assert blob["peak_um"] == pytest.approx(10.0, abs=3.0)
+
+    leftover = np.where(disc, 0.050, 0.0)
+    moving = static_structure(noise + leftover, base, pad, cam, 0.004)
+    assert not moving.present
+    # each sample's contact is left out where it presses: the mean under the first contact's
+    # centre is made of the others' maps only
+    row, col = np.unravel_index(np.argmin(np.hypot(x - centres[0, 0], y - centres[0, 1])),
+                                x.shape)
+    assert moving.count[row, col] <= n - disc[:, row, col].sum() < n
 
 
 def test_view_warp_is_identity_at_the_null_value_and_stretches_for_pixel_scale(small_sim):

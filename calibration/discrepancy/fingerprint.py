@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tactile_deploy.calibration.discrepancy.static import StaticStructure
+
 #: Half-size of the contact-centred crops of the leading modes, pixels.
 CROP_HALF_PX = 20
 
@@ -45,6 +47,7 @@ class Fingerprint:
     modes: np.ndarray              # (3, 41, 41)
     outside_structure: bool = False
     notes: list = field(default_factory=list)
+    static: StaticStructure | None = None  # of the residual after the best candidate
 
 
 def _systematic(sq_sum: float, count: float, sigma: float) -> float:

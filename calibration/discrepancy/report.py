@@ -175,6 +175,18 @@ def candidates_figure(result: DiscrepancyResult, path: Path) -> None:
     _save(fig, path)
 
 
+def _static_line(fp: dict) -> str:
+    st = fp.get("static_structure")
+    if not st:
+        return "not tested"
+    if not st["present"]:
+        return (f"none (largest z {st['max_abs_z']:.1f} against {st['threshold_z']:.1f}, "
+                f"{st['pixels_tested']:,} pixels)")
+    return "; ".join(f"x {b['x_mm']:.2f} mm, y {b['y_mm']:.2f} mm: {b['peak_um']:+.1f} um, z "
+                     f"{b['z']:.0f}, {b['area_mm2']:.2f} mm^2" for b in st["blobs"]) + \
+        f" (threshold z {st['threshold_z']:.1f})"
+
+
 def fingerprint_figure(result: DiscrepancyResult, path: Path) -> None:
     import matplotlib
 
@@ -288,6 +300,7 @@ Held-out gain: drop of the squared residual on contacts left out of the fit
   {fp['contact_centred']['quadrupole_consistency']:.2f})
 - leading modes: {", ".join(f"{100 * x:.0f} %" for x in fp['leading_modes']['energy_shares'])}
   of the excess energy
+- static relief common to every map (mean residual away from the contacts): {_static_line(fp)}
 
 ![fingerprint](fingerprint.png)
 

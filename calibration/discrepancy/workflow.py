@@ -14,6 +14,8 @@ Data flow of :func:`find_discrepancy`::
       -> fits, held-out gains by contact, BIC, effect-free null, bootstrap     (selection.py)
       -> the best candidate refined further, then re-simulated exactly on held-out contacts:
          gap before -> after                                          (verify_effect)
+      -> structure common to every map, away from the contacts, in the residual after the
+         best candidate (a static relief no candidate explains)        (static.py)
       -> look-alikes: the experiment that tells them apart            (experiment.py)
       -> verdict: effect / ambiguous / unexplained / none             (verdict.py)
 """
@@ -50,6 +52,7 @@ from tactile_deploy.calibration.discrepancy.selection import (
     select_effect,
     sufficient_stats,
 )
+from tactile_deploy.calibration.discrepancy.static import StaticStructure, static_structure
 from tactile_deploy.calibration.discrepancy.tables import (
     Contact,
     ResponseTables,
@@ -64,14 +67,17 @@ from tactile_deploy.sensors.virtual import VirtualSensor
 #: the structure is reported as unexplained. 0.75 = the systematic gap halved.
 EXPLAIN_MIN = 0.75
 #: Before the selection, candidates whose all-sample fit removes at least this share of the
-#: residual's excess energy are refined (at most REFINE_CANDIDATES of them, the best first; a
-#: candidate with large-deformation solves only when it is the best).
+#: residual's excess energy are refined, the best first: REFINE_CANDIDATES of them, and further
+#: ones, down the list, while none of those refined removes EXPLAIN_MIN of it (a candidate with
+#: large-deformation solves only when it is the best).
 REFINE_MIN_SHARE = 0.2
 REFINE_CANDIDATES = 4
 #: With measured frames every refined value is an imaged map (a rendered frame through the
-#: pipeline, 6 noise draws): the best two candidates are refined before the selection (with the
-#: best alone, a zero offset that explains half of a domed gel's gap before any refinement left
-#: the dome's table where its first fit, a third of the height, put it).
+#: pipeline, 6 noise draws): the best two candidates are refined before the selection, further
+#: ones only while neither explains the gap. An imaged dome's change grows much faster than its
+#: height (the shading of the sagging rim): its first table, quadratic through -0.25, 0 and
+#: 0.5 mm, fits a 0.3 mm dome at 0.1 mm, 6th of the candidates behind a zero offset and a depth
+#: scale that explain half of the gap each; refined, it explains 96 %.
 REFINE_CANDIDATES_FRAMES = 2
 #: Rounds of re-centring at most (depth maps, measured frames).
 REFINE_ROUNDS = 8
@@ -258,6 +264,10 @@ def find_discrepancy(sensor: VirtualSensor, measured: MeasuredData,
             verification = verify_effect(repro, tables, selection, depth, sample_contact,
                                          measured, opts, advance)
     timings["verification"] = time.perf_counter() - t2
+    fingerprint.static = static_test(tables, sample_contact, depth, verification, noise, repro,
+                                     roi_masks)
+    fingerprint.summary["static_structure"] = fingerprint.static.summary()
+    timings["static"] = time.perf_counter() - t2 - timings["verification"]
     sigma2 = noise.sigma_mm**2
     gap_before = np.sqrt(np.maximum(stats.energy / np.maximum(stats.dof, 1) - sigma2, 0.0))
     gap_after = None
@@ -294,7 +304,8 @@ def refine_candidates(repro: ContactReproducer, tables: ResponseTables, stats, n
                       workers: int = 1, advance=None) -> dict[str, int]:
     """Re-centre (in ``tables``) the tables of the candidates whose all-sample fit removes at
     least ``REFINE_MIN_SHARE`` of the residual's excess energy, when there is structure beyond
-    the noise: ``{name: rounds}``."""
+    the noise, the best first: ``REFINE_CANDIDATES`` (``REFINE_CANDIDATES_FRAMES``), then one
+    by one while no refined table removes ``EXPLAIN_MIN`` of it: ``{name: rounds}``."""
     excess, z, n_pix = excess_energy(stats, noise)
     if not (z > STRUCTURE_Z and excess > STRUCTURE_MIN_EXCESS):
         return {}
@@ -307,17 +318,22 @@ def refine_candidates(repro: ContactReproducer, tables: ResponseTables, stats, n
         _, red = TableFit(t).fit(stats.gram[:, blk, blk].sum(0), stats.proj[:, blk].sum(0))
         reductions.append((red, t.name))
     reductions.sort(reverse=True)
+    first = REFINE_CANDIDATES_FRAMES if frames else REFINE_CANDIDATES
     out = {}
-    for rank, (red, name) in enumerate(
-            reductions[:REFINE_CANDIDATES_FRAMES if frames else REFINE_CANDIDATES]):
+    explained = 0.0  # the largest share of the excess a refined table removes (all samples)
+    for rank, (red, name) in enumerate(reductions):
+        if red < REFINE_MIN_SHARE * units or (rank >= first and explained >= EXPLAIN_MIN):
+            break
         table = tables.table(name)
-        if red < REFINE_MIN_SHARE * units or (table.candidate.route == "nonlinear" and rank):
+        if table.candidate.route == "nonlinear" and rank:
             continue
         new, _, rounds = refine_table(repro, tables, table, depth, sample_contact, frames,
                                       workers=workers, max_rounds=REFINE_ROUNDS_FRAMES if frames
                                       else REFINE_ROUNDS)
         tables.tables[tables.tables.index(table)] = new
         out[name] = rounds
+        A, b = fit_stats(tables, new, depth, sample_contact)
+        explained = max(explained, TableFit(new).fit(A.sum(0), b.sum(0))[1] / units)
         if advance is not None:
             advance(1)
     return out
@@ -337,6 +353,28 @@ def _outside_noise(tables: ResponseTables, sample_contact: np.ndarray, roi_masks
         mean += float(e.mean())
         var += float(e.var(ddof=1))
     return mean, math.sqrt(var)
+
+
+def static_test(tables: ResponseTables, sample_contact: np.ndarray, depth: np.ndarray,
+                verification: Verification | None, noise: NoiseEstimate,
+                repro: ContactReproducer, roi_masks: np.ndarray) -> StaticStructure:
+    """Structure common to every map (static.py) in the residual after the best candidate:
+    the held-out maps with the named effect, or the sensor model's maps when none is named, on
+    each sample's region of interest ``roi_masks`` (N, H, W) (where those maps are the
+    candidate's). With imaged frames each sample's pixel noise variance comes from its
+    contact's noise realisations."""
+    base = tables.base[sample_contact]
+    after = base if verification is None else verification.after_mm
+    var = None
+    rel_se = 0.0
+    if tables.noise_maps is not None:
+        per_contact = np.stack([np.asarray(m, np.float64).var(axis=0, ddof=1)
+                                for m in tables.noise_maps])
+        var = per_contact[sample_contact]
+        j = min(len(m) for m in tables.noise_maps)
+        rel_se = math.sqrt(2.0 / max(len(sample_contact) * (j - 1), 1))
+    return static_structure(depth - after, base, repro.pad_mask, repro.camera, noise.sigma_mm,
+                            noise.se_mm, var, rel_se, roi_masks)
 
 
 def _second_change(tables: ResponseTables, selection: Selection, sample_contact):
@@ -458,6 +496,14 @@ def _force_summary(sensor, measured, tables, sample_contact, verification) -> di
     return out
 
 
+def _static_text(static: StaticStructure) -> str:
+    b = static.blobs[0]
+    more = f" (and {len(static.blobs) - 1} more)" if len(static.blobs) > 1 else ""
+    return (f"a static relief common to every map at x {b['x_mm']:.2f} mm, y {b['y_mm']:.2f} mm "
+            f"(sensor frame): {b['peak_um']:+.1f} um mean residual, z {b['z']:.0f} against "
+            f"{static.threshold_z:.1f}, {b['area_mm2']:.2f} mm^2{more}")
+
+
 def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerprint,
            verification: Verification | None, stats, repro, sample_contact) -> DiscrepancyVerdict:
     """The verdict from the selection, the exact verification and the fingerprint."""
@@ -465,7 +511,8 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
     dof = selection.dof
     excess_energy = selection.energy - sigma2 * dof
     gap_before = math.sqrt(max(selection.energy / dof - sigma2, 0.0))
-    structure = selection.structure or fingerprint.outside_structure
+    static = fingerprint.static
+    static_present = static is not None and static.present
     reports = []
     for c in selection.candidates:
         t = tables.table(c.name)
@@ -487,11 +534,16 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
                   gap_before_mm=gap_before)
     best = selection.best
     if best is None:
-        if structure:
+        if selection.structure or fingerprint.outside_structure:
             where = ("outside every contact's reach" if fingerprint.outside_structure
                      and not selection.structure else "in the contact regions")
             msg = (f"structure beyond the noise {where} (excess {selection.excess:.3f}, "
-                   f"z {selection.excess_z:.0f}) that no candidate explains; see the fingerprint")
+                   f"z {selection.excess_z:.0f}) that no candidate explains"
+                   + (f"; {_static_text(static)}" if static_present else "")
+                   + "; see the fingerprint")
+            return DiscrepancyVerdict(verdict="unexplained", message=msg, **common)
+        if static_present:
+            msg = f"{_static_text(static)}, which no candidate explains; see the fingerprint"
             return DiscrepancyVerdict(verdict="unexplained", message=msg, **common)
         return DiscrepancyVerdict(verdict="none", message="the residual is consistent with the "
                                   "noise: nothing is missing from the model", **common)
@@ -502,7 +554,7 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
     x_after = energy_after / (sigma2 * dof) - 1.0
     z_after = x_after / math.sqrt(2.0 * selection.noise.energy_factor / dof
                                   + (2 * selection.noise.se_mm / selection.noise.sigma_mm) ** 2)
-    remaining = bool(z_after > STRUCTURE_Z and x_after > STRUCTURE_MIN_EXCESS)
+    remaining = bool(z_after > STRUCTURE_Z and x_after > STRUCTURE_MIN_EXCESS) or static_present
     second = selection.pair["second"] if selection.pair else None
     # with a second effect, gap_after and explained are those of both together (the named
     # effect re-simulated exactly, the second from the tables): apply the first, run again
@@ -531,5 +583,7 @@ def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerpr
     both = f" together with a second effect, {second} (apply {best}, run again)" if second \
         else ""
     msg = (f"{best}{both} explains {100 * explained:.0f} % of the held-out gap's structure "
-           f"({gap_before * 1e3:.2f} -> {gap_after * 1e3:.2f} um)")
+           f"({gap_before * 1e3:.2f} -> {gap_after * 1e3:.2f} um)"
+           + (f"; besides, {_static_text(static)}, which no candidate explains"
+              if static_present else ""))
     return DiscrepancyVerdict(verdict="effect", message=msg, **named, **common)
