@@ -225,12 +225,16 @@ class TruthSolver:
     model : "neo-hookean" (default) or "linear" (small-strain limit).
     supports : Supports — how the pad is held (default: bonded backplate, free sides).
     h_coarse_mm : float — largest in-plane spacing of the truth mesh.
+    deviatoric : "face" (default) or "element" — where the gel's deviatoric energy is
+        integrated (:mod:`tactile_deploy.fem.hyperelastic`: face-based smoothing cells, or tets,
+        which are 2-3 % too stiff on the truth meshes).
     settings : SolveSettings
     """
 
     def __init__(self, geometry: PadGeometry, material: Material = Material(),
                  model: str = "neo-hookean", supports: Supports = SENSOR_SUPPORTS,
-                 h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings()):
+                 h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings(),
+                 deviatoric: str = "face"):
         if model not in ("neo-hookean", "linear"):
             raise ValueError(f"model must be 'neo-hookean' or 'linear', got {model!r}")
         self.geometry = geometry
@@ -239,6 +243,7 @@ class TruthSolver:
         self.supports = supports
         self.h_coarse_mm = h_coarse_mm
         self.settings = settings
+        self.deviatoric = deviatoric
 
     # -------------------------------------------------------------------------- meshing
     def mesh_for(self, field_: IntrusionField, h_fine_mm: float | None = None,
@@ -368,7 +373,8 @@ class _Solve:
         self.h_fine = h_fine
         mat = solver.material
         self.geometric = solver.model != "linear"
-        self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu)
+        self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu,
+                             solver.deviatoric)
         self.dofs = _dof_map(mesh, solver.supports)
         n_plane = mesh.n_plane
         X = mesh.vertices[:n_plane]
