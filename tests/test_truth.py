@@ -65,6 +65,19 @@ def block_mesh():
     return build_truth_mesh(BLOCK, np.zeros((0, 2)), h_fine_mm=1.0, h_coarse_mm=1.0)
 
 
+def test_a_node_requested_at_the_centre_is_not_doubled():
+    # A centred indenter's deepest point comes back as (-3e-14, -3e-14) mm; meshing it beside
+    # the surface's centre node gave two nodes 4e-14 mm apart and degenerate, duplicated tets.
+    from scipy.spatial import cKDTree
+
+    region = np.stack(np.meshgrid(np.arange(-1, 1.01, 0.2), np.arange(-1, 1.01, 0.2)), -1).reshape(-1, 2)
+    mesh = build_truth_mesh(BLOCK, region, h_fine_mm=0.4, h_coarse_mm=1.5,
+                            surface_nodes_xy=np.array([[-2.7e-14, -2.7e-14]]))
+    d, _ = cKDTree(mesh.vertices).query(mesh.vertices, k=2)
+    assert d[:, 1].min() > 0.05
+    assert len(np.unique(np.sort(mesh.tets, axis=1), axis=0)) == len(mesh.tets)
+
+
 # ------------------------------------------------------------------------------ the material
 @pytest.mark.parametrize("deviatoric", ["element", "face"])
 def test_neo_hookean_tangent_is_the_derivative_of_its_forces(block_mesh, deviatoric):
