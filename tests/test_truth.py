@@ -289,7 +289,17 @@ def test_coulomb_limits_are_frictionless_and_stick(friction_solutions):
         assert diff < 1e-5 * scale
         assert a.force_n == pytest.approx(b.force_n, rel=1e-5)
     assert not s["mu_small"].sticking.any()
-    assert s["mu_large"].sticking[s["mu_large"].in_contact].all()
+    # every node in contact sticks, except rim nodes the solver's anti-cycling rule left without
+    # friction (their normal force ~0); the same nodes in the stick solution
+    big = s["mu_large"]
+    free = big.info["frictionless_nodes"]
+    np.testing.assert_array_equal(free, s["stick"].info["frictionless_nodes"])
+    contact = big.in_contact.copy()
+    contact[free] = False
+    print(f"mu = 1e7: {len(free)} rim nodes without friction, their normal force "
+          f"{big.normal_force_n[free].sum():.2e} N of {big.force_n:.4f} N")
+    assert big.sticking[contact].all()
+    assert len(free) <= 2 and big.normal_force_n[free].sum() < 1e-4 * big.force_n
     # stick and frictionless differ measurably at nu = 0.4 (the gel would slide outwards)
     assert abs(s["stick"].force_n / s["frictionless"].force_n - 1) > 1e-3
 

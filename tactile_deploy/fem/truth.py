@@ -605,6 +605,12 @@ class _Solve:
             state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
             state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
         prev_step = np.inf
+        # Anti-cycling: the (active, stick) sets seen in this load step, and the nodes that may
+        # no longer stick (a rim node whose normal force is ~0 can cycle active-slipping ->
+        # sticking (tensile) -> released (penetrating) -> active-slipping; it then carries no
+        # friction, its bound mu t_N being ~0).
+        seen = set()
+        no_stick = np.zeros(nc, bool)
         for it in range(1, st.max_iterations + 1):
             self.newton_steps += 1
             c = self.constraints(u)
@@ -691,8 +697,13 @@ class _Solve:
             tau = f_T - self.c_node[:, None] * uT
             tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
             nt = np.linalg.norm(tau, axis=1)
-            new_stick = new_n & (nt <= bound) & (bound > 0)
-            f_slip = np.where((new_n & ~new_stick)[:, None],
+            new_stick = new_n & (nt <= bound) & (bound > 0) & ~no_stick
+            key = (new_n.tobytes(), new_p.tobytes(), new_stick.tobytes())
+            if key in seen:  # a cycle: the nodes that just changed their sets stop sticking
+                no_stick |= (new_n != act_n) | (new_stick != stick)
+                new_stick &= ~no_stick
+            seen.add(key)
+            f_slip = np.where((new_n & ~new_stick & ~no_stick)[:, None],
                               np.where(np.isfinite(bound), bound, 0.0)[:, None] * tau
                               / np.maximum(nt, 1e-300)[:, None], 0.0)
             scale = max(float(np.abs(lam_n).sum() + np.abs(lam_p).sum()), 1e-300)
@@ -707,7 +718,8 @@ class _Solve:
                       int(new_n.sum()), int(new_p.sum()), int(new_stick.sum()), pen * 1e3,
                       slip_change)
             state.update(lam_n=lam_n, lam_p=lam_p, active_n=new_n, active_p=new_p,
-                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0))
+                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0),
+                         no_stick=no_stick.copy())
             small = step <= st.step_tol * depth or (step <= st.floor_tol * depth
                                                      and step >= 0.5 * prev_step)
             prev_step = step
@@ -744,6 +756,8 @@ class _Solve:
         elif self.friction == "coulomb":
             sticking[nodes] = state["stick"]
             sticking &= in_contact
+        if self.friction != "frictionless":
+            sticking[nodes[state.get("no_stick", np.zeros(nc, bool))]] = False
         return TruthSolution(
             mesh=self.mesh, displacements_mm=u, contact_forces_n=forces, normal_force_n=fn,
             in_contact=in_contact, sticking=sticking, force_n=float(-forces[:, 2].sum()),
@@ -757,6 +771,10 @@ class _Solve:
                   # complementarity, per constraint: a sensing node's own normal force (N) and
                   # the feature points' gaps (mm) and forces (N)
                   "node_normal_force_n": node_fn, "point_gap_mm": c.gap[nc:].copy(),
+                  # sensing nodes the anti-cycling rule left without friction (rim nodes whose
+                  # normal force is ~0; reported as slipping)
+                  "frictionless_nodes": nodes[state.get("no_stick", np.zeros(nc, bool))
+                                              & state["active_n"]],
                   "point_force_n": np.asarray(lam_p, float).copy()},
         )
 
