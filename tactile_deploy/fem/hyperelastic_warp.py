@@ -129,6 +129,9 @@ class WarpForces:
     the inverted-element check (an inverted tet gives non-finite forces)."""
 
     def __init__(self, pad: NeoHookeanGel):
+        if pad.deviatoric != "element":
+            raise ValueError("the warp kernels integrate the deviatoric energy per tet; got a gel "
+                             f"with deviatoric={pad.deviatoric!r}")
         wp, self._dev, self._vol = _kernels()
         self.wp = wp
         self.pad = pad

@@ -225,12 +225,16 @@ class TruthSolver:
     model : "neo-hookean" (default) or "linear" (small-strain limit).
     supports : Supports — how the pad is held (default: bonded backplate, free sides).
     h_coarse_mm : float — largest in-plane spacing of the truth mesh.
+    deviatoric : "face" (default) or "element" — where the gel's deviatoric energy is
+        integrated (:mod:`tactile_deploy.fem.hyperelastic`: face-based smoothing cells, or tets,
+        which are 2-3 % too stiff on the truth meshes).
     settings : SolveSettings
     """
 
     def __init__(self, geometry: PadGeometry, material: Material = Material(),
                  model: str = "neo-hookean", supports: Supports = SENSOR_SUPPORTS,
-                 h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings()):
+                 h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings(),
+                 deviatoric: str = "face"):
         if model not in ("neo-hookean", "linear"):
             raise ValueError(f"model must be 'neo-hookean' or 'linear', got {model!r}")
         self.geometry = geometry
@@ -239,6 +243,7 @@ class TruthSolver:
         self.supports = supports
         self.h_coarse_mm = h_coarse_mm
         self.settings = settings
+        self.deviatoric = deviatoric
 
     # -------------------------------------------------------------------------- meshing
     def mesh_for(self, field_: IntrusionField, h_fine_mm: float | None = None,
@@ -368,7 +373,8 @@ class _Solve:
         self.h_fine = h_fine
         mat = solver.material
         self.geometric = solver.model != "linear"
-        self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu)
+        self.gel = gel_model(solver.model, mesh.vertices, mesh.tets, mat.E_mpa, mat.nu,
+                             solver.deviatoric)
         self.dofs = _dof_map(mesh, solver.supports)
         n_plane = mesh.n_plane
         X = mesh.vertices[:n_plane]
@@ -599,6 +605,12 @@ class _Solve:
             state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
             state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
         prev_step = np.inf
+        # Anti-cycling: the (active, stick) sets seen in this load step, and the nodes that may
+        # no longer stick (a rim node whose normal force is ~0 can cycle active-slipping ->
+        # sticking (tensile) -> released (penetrating) -> active-slipping; it then carries no
+        # friction, its bound mu t_N being ~0).
+        seen = set()
+        no_stick = np.zeros(nc, bool)
         for it in range(1, st.max_iterations + 1):
             self.newton_steps += 1
             c = self.constraints(u)
@@ -685,8 +697,13 @@ class _Solve:
             tau = f_T - self.c_node[:, None] * uT
             tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
             nt = np.linalg.norm(tau, axis=1)
-            new_stick = new_n & (nt <= bound) & (bound > 0)
-            f_slip = np.where((new_n & ~new_stick)[:, None],
+            new_stick = new_n & (nt <= bound) & (bound > 0) & ~no_stick
+            key = (new_n.tobytes(), new_p.tobytes(), new_stick.tobytes())
+            if key in seen:  # a cycle: the nodes that just changed their sets stop sticking
+                no_stick |= (new_n != act_n) | (new_stick != stick)
+                new_stick &= ~no_stick
+            seen.add(key)
+            f_slip = np.where((new_n & ~new_stick & ~no_stick)[:, None],
                               np.where(np.isfinite(bound), bound, 0.0)[:, None] * tau
                               / np.maximum(nt, 1e-300)[:, None], 0.0)
             scale = max(float(np.abs(lam_n).sum() + np.abs(lam_p).sum()), 1e-300)
@@ -701,7 +718,8 @@ class _Solve:
                       int(new_n.sum()), int(new_p.sum()), int(new_stick.sum()), pen * 1e3,
                       slip_change)
             state.update(lam_n=lam_n, lam_p=lam_p, active_n=new_n, active_p=new_p,
-                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0))
+                         stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0),
+                         no_stick=no_stick.copy())
             # The small-strain model's equations and constraints are linear in u: a step taken
             # with the active, stick and slip sets that it then reproduces is the exact
             # solution (one more step would only measure the factorisation's round-off).
@@ -741,6 +759,8 @@ class _Solve:
         elif self.friction == "coulomb":
             sticking[nodes] = state["stick"]
             sticking &= in_contact
+        if self.friction != "frictionless":
+            sticking[nodes[state.get("no_stick", np.zeros(nc, bool))]] = False
         return TruthSolution(
             mesh=self.mesh, displacements_mm=u, contact_forces_n=forces, normal_force_n=fn,
             in_contact=in_contact, sticking=sticking, force_n=float(-forces[:, 2].sum()),
@@ -754,6 +774,10 @@ class _Solve:
                   # complementarity, per constraint: a sensing node's own normal force (N) and
                   # the feature points' gaps (mm) and forces (N)
                   "node_normal_force_n": node_fn, "point_gap_mm": c.gap[nc:].copy(),
+                  # sensing nodes the anti-cycling rule left without friction (rim nodes whose
+                  # normal force is ~0; reported as slipping)
+                  "frictionless_nodes": nodes[state.get("no_stick", np.zeros(nc, bool))
+                                              & state["active_n"]],
                   "point_force_n": np.asarray(lam_p, float).copy()},
         )
 

@@ -119,8 +119,14 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
             elif abs(z0 + h) < 1e-4 * h and abs(z1 + h) < 1e-4 * h:
                 bottom_tag = tag
         geo = gmsh.model.geo
-        extra = [] if surface_nodes_xy is None else [tuple(p) for p in np.reshape(surface_nodes_xy, (-1, 2))]
-        top_points = [occ.addPoint(x, y, 0.0) for x, y in [(0.0, 0.0)] + extra]
+        # The surface's centre and the requested nodes, each once: two points closer than
+        # 1e-3 of the fine spacing (a centred indenter's tip found at -3e-14 mm) made gmsh
+        # build degenerate and duplicated tets between them.
+        top_xy = [(0.0, 0.0)]
+        for x, y in ([] if surface_nodes_xy is None else np.reshape(surface_nodes_xy, (-1, 2))):
+            if min(np.hypot(x - px, y - py) for px, py in top_xy) > 1e-3 * h_fine_mm:
+                top_xy.append((float(x), float(y)))
+        top_points = [occ.addPoint(x, y, 0.0) for x, y in top_xy]
         bottom_points = [occ.addPoint(0.0, 0.0, -h)]
         occ.synchronize()
         gmsh.model.mesh.embed(0, top_points, 2, top_tag)
