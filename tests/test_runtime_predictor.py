@@ -251,6 +251,27 @@ def test_publisher_message_format_and_topology(model):
     assert np.allclose(ta["rest_vertices_mm"], topo.rest_vertices_mm, atol=1e-5)
 
 
+def test_publisher_delivers_what_it_queued_before_closing(model):
+    """A run closes its publisher right after the last frame: the meshes still queued then
+    reach the subscriber (with no wait at close, 210-262 of these 300 arrived)."""
+    from tactile_deploy.runtime.publish import MeshPublisher, MeshSubscriber
+
+    _, _, topo = model
+    v = topo.rest_vertices_mm.astype(np.float32)
+    pub = MeshPublisher("tcp://127.0.0.1:*", "testsensor", topo, hwm=1000)
+    with MeshSubscriber(pub.endpoint, "testsensor") as sub:
+        wait_for_subscription(pub, sub)
+        for i in range(300):
+            pub.publish(v, frame_index=i, t_capture_ns=time.time_ns(), latency_ms=1.0,
+                        ood_score=0.0, in_distribution=True)
+        pub.close()
+        seqs = []
+        while (m := sub.recv(2000)) is not None:
+            if m[0] == "mesh/testsensor":
+                seqs.append(m[1]["seq"])
+    assert seqs == list(range(300))
+
+
 def test_publisher_bad_address():
     from tactile_deploy.runtime.publish import MeshPublisher, PublishError
 

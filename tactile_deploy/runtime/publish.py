@@ -49,6 +49,8 @@ FORMAT_MESH = "tactile-deploy.mesh"
 FORMAT_TOPOLOGY = "tactile-deploy.topology"
 VERSION = 1
 SENSOR_FRAME = "sensor: origin at the centre of the sensing surface, z out of the gel"
+#: Longest wait at close for queued messages to reach connected subscribers, ms.
+FLUSH_TIMEOUT_MS = 2000
 
 
 class PublishError(RuntimeError):
@@ -157,9 +159,12 @@ class MeshPublisher:
         # message for that subscriber silently
         self._sock.send_multipart(frames, flags=self._zmq.NOBLOCK, copy=False)
 
-    def close(self) -> None:
+    def close(self, flush_timeout_ms: int = FLUSH_TIMEOUT_MS) -> None:
+        """Close the socket once the messages already queued for connected subscribers are
+        sent, waiting at most ``flush_timeout_ms`` (a subscriber that stopped reading cannot hold
+        the process); the last meshes of a run are not dropped at its end."""
         if self._sock is not None:
-            self._sock.close()
+            self._sock.close(linger=int(flush_timeout_ms))
             self._sock = None
 
     def __enter__(self) -> MeshPublisher:
