@@ -276,6 +276,20 @@ def friction_solutions():
     return out
 
 
+def test_small_strain_solve_ends_on_the_step_that_keeps_its_sets():
+    """The linear model's equations and constraints are linear: the step whose active sets it
+    reproduces is the solution. The solver used to take one more Newton step (a factorisation)
+    to measure the round-off, and for a 4 mm sphere pressed 0.1 mm into the 8 mm pad with the
+    per-tet gel it kept taking them (1.6e-7 mm each) until it gave up after 60."""
+    solver = TruthSolver(SMALL_PAD, Material(E_mpa=1.0, nu=0.48), model="linear")
+    sol = solver.solve_field(sphere(4.0, 0.1))
+    history = sol.info["history"]
+    print(f"{sol.force_n:.5f} N, Newton steps {[(k, f'{step:.3g}') for k, _, step in history]}")
+    assert history[-1][2] > 1e-6          # it stopped on a real step, not a round-off one
+    assert sol.max_penetration_mm <= 1e-9
+    assert sol.force_n == pytest.approx(dimitriadis_force(1.0, 0.48, 4.0, 0.1, 3.0), rel=0.06)
+
+
 @pytest.mark.slow
 def test_coulomb_limits_are_frictionless_and_stick(friction_solutions):
     s = friction_solutions
