@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_deploy.calibration.discrepancy.static import describe_blob
 from tactile_deploy.calibration.discrepancy.verdict import verdict_text
 from tactile_deploy.calibration.discrepancy.workflow import DiscrepancyResult
 from tactile_deploy.outputs import OutputPathError, check_not_input
@@ -182,8 +183,7 @@ def _static_line(fp: dict) -> str:
     if not st["present"]:
         return (f"none (largest z {st['max_abs_z']:.1f} against {st['threshold_z']:.1f}, "
                 f"{st['pixels_tested']:,} pixels)")
-    return "; ".join(f"x {b['x_mm']:.2f} mm, y {b['y_mm']:.2f} mm: {b['peak_um']:+.1f} um, z "
-                     f"{b['z']:.0f}, {b['area_mm2']:.2f} mm^2" for b in st["blobs"]) + \
+    return "; ".join(describe_blob(b) for b in st["blobs"]) + \
         f" (threshold z {st['threshold_z']:.1f})"
 
 

@@ -149,3 +149,11 @@ def static_structure(residual_mm: np.ndarray, base_mm: np.ndarray, pad_mask: np.
                       "pixels": size, "area_mm2": float(size * pitch**2)})
     blobs.sort(key=lambda b: -b["z"])
     return StaticStructure(bool(blobs), mean, count, z, tested, t, blobs)
+
+
+def describe_blob(blob: dict) -> str:
+    """One blob of :attr:`StaticStructure.blobs` in words: where (sensor frame), how high, how
+    sure and how large."""
+    return (f"x {blob['x_mm']:.2f} mm, y {blob['y_mm']:.2f} mm (sensor frame): "
+            f"{blob['peak_um']:+.1f} um mean residual, z {blob['z']:.0f}, "
+            f"{blob['area_mm2']:.2f} mm^2")

@@ -52,7 +52,11 @@ from tactile_deploy.calibration.discrepancy.selection import (
     select_effect,
     sufficient_stats,
 )
-from tactile_deploy.calibration.discrepancy.static import StaticStructure, static_structure
+from tactile_deploy.calibration.discrepancy.static import (
+    StaticStructure,
+    describe_blob,
+    static_structure,
+)
 from tactile_deploy.calibration.discrepancy.tables import (
     Contact,
     ResponseTables,
@@ -499,9 +503,8 @@ def _force_summary(sensor, measured, tables, sample_contact, verification) -> di
 def _static_text(static: StaticStructure) -> str:
     b = static.blobs[0]
     more = f" (and {len(static.blobs) - 1} more)" if len(static.blobs) > 1 else ""
-    return (f"a static relief common to every map at x {b['x_mm']:.2f} mm, y {b['y_mm']:.2f} mm "
-            f"(sensor frame): {b['peak_um']:+.1f} um mean residual, z {b['z']:.0f} against "
-            f"{static.threshold_z:.1f}, {b['area_mm2']:.2f} mm^2{more}")
+    return (f"a static relief common to every map at {describe_blob(b)} (threshold z "
+            f"{static.threshold_z:.1f}){more}")
 
 
 def decide(sensor, measured, tables, selection: Selection, fingerprint: Fingerprint,
