@@ -28,6 +28,19 @@ def dimitriadis_force(E, nu, R, d, h):
     return 4 / 3 * E / (1 - nu**2) * math.sqrt(R) * d**1.5 * f
 
 
+def mindlin_tangential_load(E, nu, mu, P, a, delta):
+    """Cattaneo-Mindlin partial slip of a rigid sphere on an elastic half-space (Johnson,
+    Contact Mechanics, 1985, eqs. 7.42 and 7.40, the second body rigid): the tangential force Q
+    (N) that a tangential displacement ``delta`` (mm) of the sphere produces under the normal
+    force ``P`` (N) over the contact radius ``a`` (mm), and the radius c (mm) of the stick
+    zone. E in MPa. Valid for delta up to full sliding, delta* = 3 mu P (2 - nu) / (16 G a)."""
+    G = E / (2 * (1 + nu))
+    delta_full = 3 * mu * P * (2 - nu) / (16 * G * a)
+    ratio = min(delta / delta_full, 1.0)
+    q = 1 - (1 - ratio) ** 1.5  # Q / (mu P)
+    return q * mu * P, a * (1 - q) ** (1 / 3)
+
+
 def imports_beyond(module_file: Path, allowed: set[str]) -> tuple[set[str], set[str]]:
     """The top-level names a module imports that are neither the standard library nor
     ``allowed``, and those that are the product's own: (outside, product); both must be empty

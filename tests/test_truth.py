@@ -12,6 +12,8 @@
   Dimitriadis et al. 2002 (Biophys. J. 82:2798), apex on a mesh node and between nodes, and the
   force's slope in depth against the same formula;
 * friction limits: Coulomb with mu -> 0 is frictionless, mu -> infinity is stick;
+* partial slip: a sphere pressed into a thick block and then slid tangentially, against
+  Cattaneo-Mindlin (the tangential force for the slide, the stick zone's radius);
 * continuous-surface complementarity: a ball and a 90-degree cone pressed 0.8 mm do not
   penetrate the gel's piecewise-linear surface by more than 10 um anywhere (checked on a 10 um
   grid), and the cone's tip reaches its commanded depth.
@@ -38,7 +40,7 @@ from tactile_deploy.fem.truth_mesh import build_truth_mesh
 from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.pad.geometry import PadGeometry
 from contact_checks import check_resolved_contact
-from references import dimitriadis_force
+from references import dimitriadis_force, mindlin_tangential_load
 
 # A box: its walls are planes, so their faces are exactly vertical and a homogeneous field is
 # the discrete solution (a polygonal cylinder's wall faces tilt).
@@ -338,6 +340,62 @@ def test_finite_friction_has_a_stick_core_and_a_slip_rim(friction_solutions):
     # the force lies between the frictionless and sticking ones
     lo, hi = sorted([friction_solutions["frictionless"].force_n, friction_solutions["stick"].force_n])
     assert lo - 1e-9 <= sol.force_n <= hi + 1e-9
+
+
+def test_partial_slip_matches_cattaneo_mindlin():
+    """A 4 mm sphere pressed 0.1 mm into a block 25x as thick as the contact radius (nearly a
+    half-space; nu 0.49, so normal and tangential loads barely couple, as Mindlin assumes), then
+    slid along x by 0.6 of the slide at which it would fully slide: the tangential force
+    against Cattaneo-Mindlin, the stick zone's radius against a (1 - Q / mu P)^(1/3), the
+    stick zone centred, and every slipping node at the Coulomb bound, dragged along +x.
+    (Measured at 0.3 / 0.6 / 0.9 of full sliding on a 20 x 20 x 10 mm block, fine spacing
+    0.1 mm: Q / mu P 0.4171 / 0.7506 / 0.9729 against Mindlin's 0.4143 / 0.7470 / 0.9684.)"""
+    R, d, nu, mu, E = 4.0, 0.1, 0.49, 0.5, 0.3
+    block = PadGeometry(name="half-space", shape="box", width_mm=16.0, length_mm=16.0,
+                        thickness_mm=8.0)
+    solver = TruthSolver(block, Material(E_mpa=E, nu=nu, friction="coulomb", mu=mu),
+                         model="linear")
+    field = sphere(R, d)
+    mesh, h, _ = solver.mesh_for(field, h_fine_mm=0.15)
+    a = math.sqrt(R * d)  # the rigid sphere's contact radius at depth d
+    # the normal force of the block under this slide (a slide leaves it within 0.3 %)
+    P = dimitriadis_force(E, nu, R, d, 8.0)
+    G = E / (2 * (1 + nu))
+    delta = 0.6 * 3 * mu * P * (2 - nu) / (16 * G * a)
+    sol = solver.solve_field(field, mesh=mesh, h_fine_mm=h, slide_mm=(delta, 0.0))
+    Q_ref, _ = mindlin_tangential_load(E, nu, mu, sol.force_n, a, delta)
+    Q = sol.tangential_force_n[0]
+    q = Q / (mu * sol.force_n)
+    c_ref = a * (1 - q) ** (1 / 3)
+    areas = mesh.sensing_nodal_areas_mm2()
+    c = math.sqrt(areas[sol.sticking].sum() / math.pi)
+    xy = mesh.vertices[: mesh.n_plane, :2]
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    inner = sol.in_contact & (r < 0.8 * c_ref)
+    stick_inner = areas[inner & sol.sticking].sum() / areas[inner].sum()
+    centre = (areas[sol.sticking, None] * xy[sol.sticking]).sum(0) / areas[sol.sticking].sum()
+    slip = sol.in_contact & ~sol.sticking
+    slip[sol.info["frictionless_nodes"]] = False
+    ft = sol.contact_forces_n[slip, :2]
+    print(f"P {sol.force_n:.5f} N (bonded block {P:.5f}), Q {Q:.5f} N, Mindlin {Q_ref:.5f} N "
+          f"(Q / mu P {q:.4f}); stick radius {c:.4f} mm, Mindlin {c_ref:.4f} mm (a {a:.4f}); "
+          f"stick share inside 0.8 c {stick_inner:.3f}; stick centre {centre}; "
+          f"{sol.info['factorizations']} factorisations")
+    assert sol.force_n == pytest.approx(P, rel=0.03)
+    assert Q == pytest.approx(Q_ref, rel=0.02)          # measured: +0.5 %
+    assert abs(c - c_ref) <= 0.25 * h                   # measured: 0.05 h
+    # centred to within half a node spacing (measured: 0.35 h along the slide; sliding the other
+    # way moves it 0.12 h the other way: the block's pressure leans towards the slide, 4 um)
+    assert stick_inner >= 0.9 and np.hypot(*centre) <= 0.5 * h
+    assert np.all(ft[:, 0] > 0)
+    np.testing.assert_allclose(np.linalg.norm(ft, axis=1), mu * sol.normal_force_n[slip],
+                               rtol=1e-3)
+
+
+def test_a_slide_needs_friction():
+    solver = TruthSolver(SMALL_PAD, Material(E_mpa=0.3, nu=0.45), model="linear")
+    with pytest.raises(ValueError, match="without friction"):
+        solver.solve_field(sphere(4.0, 0.1), slide_mm=(0.01, 0.0))
 
 
 # ------------------------------------------------------------------ continuous-surface contact

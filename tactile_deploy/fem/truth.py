@@ -88,6 +88,8 @@ class SolveSettings:
     # Modified Newton: a factorised tangent is reused while the active, stick and slip sets
     # stay the same and each step shrinks to at most this fraction of the one before.
     reuse_contraction: float = 0.8
+    anderson_depth: int = 5  # steps remembered when mixing the slip forces
+    slide_steps: int = 2  # increments of a tangential slide (after the indenter is pressed)
 
 
 @dataclass
@@ -284,17 +286,22 @@ class TruthSolver:
         return self.solve_field(indenter_field(indenter, pose), **kwargs)
 
     def solve_field(self, field_: IntrusionField, mesh: PadMesh | None = None,
-                    h_fine_mm: float | None = None, features: np.ndarray | None = None
-                    ) -> TruthSolution:
+                    h_fine_mm: float | None = None, features: np.ndarray | None = None,
+                    slide_mm: tuple[float, float] = (0.0, 0.0)) -> TruthSolution:
         """Contact for an intrusion field; ``mesh`` overrides the automatic truth mesh,
-        ``features`` (k, 2) adds indenter points (sensor frame, mm) to the constraints."""
+        ``features`` (k, 2) adds indenter points (sensor frame, mm) to the constraints.
+
+        ``slide_mm`` (x, y, sensor frame, mm): after pressing, the indenter moved this far
+        along the surface (a tangential load, as in Cattaneo-Mindlin). Sticking nodes move with
+        it; slipping nodes carry their Coulomb force against the slip. The slide is taken as
+        small next to the contact: the intrusion field is the indenter's final place."""
         if mesh is None:
             mesh, h_fine_mm, fp = self.mesh_for(field_, h_fine_mm)
         else:
             fp, _ = footprint(field_, self.geometry, pitch_mm=0.05)
             if h_fine_mm is None:
                 h_fine_mm = float(np.sqrt(mesh.sensing_nodal_areas_mm2().min() * 2.0))
-        return _Solve(self, mesh, field_, h_fine_mm, fp, features).run()
+        return _Solve(self, mesh, field_, h_fine_mm, fp, features, slide_mm).run()
 
 
 def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,
@@ -375,8 +382,15 @@ class _Solve:
     """One semismooth (primal-dual active-set) Newton solve: the state of its iterations."""
 
     def __init__(self, solver: TruthSolver, mesh: PadMesh, field_: IntrusionField,
-                 h_fine: float, fp: np.ndarray, features):
+                 h_fine: float, fp: np.ndarray, features, slide_mm=(0.0, 0.0)):
         self.s = solver
+        slide = np.asarray(slide_mm, float).reshape(-1)
+        if slide.shape != (2,) or not np.all(np.isfinite(slide)):
+            raise ValueError(f"slide_mm must be two finite numbers (x, y in mm), got {slide_mm!r}")
+        if np.any(slide != 0.0) and solver.material.friction == "frictionless":
+            raise ValueError("a slide moves the indenter along the surface: without friction "
+                             "it does nothing; use friction 'stick' or 'coulomb'")
+        self.slide = np.array([slide[0], slide[1], 0.0])
         self.mesh = mesh
         self.field = field_
         self.h_fine = h_fine
@@ -583,8 +597,9 @@ class _Solve:
 
     # -------------------------------------------------------------------------- iterations
     def run(self) -> TruthSolution:
-        """Load steps (the indenter lowered in equal depth increments, large deformation only),
-        each solved to the tolerances."""
+        """Load steps, each solved to the tolerances: the indenter lowered in equal depth
+        increments (large deformation only), then slid along the surface in equal increments
+        (a slide only): each step starts from the last one's contact, stick and slip sets."""
         st = self.s.settings
         u = np.zeros((self.mesh.n_nodes, 3))
         depth = max(float(np.max(self.field(self.mesh.vertices[self.cand_nodes, :2]), initial=0.0)),
@@ -592,11 +607,18 @@ class _Solve:
         n_steps = 1
         if self.geometric:
             n_steps = max(1, math.ceil(depth / (st.step_strain * self.s.geometry.thickness_mm)))
+        slide = self.slide
+        n_slide = st.slide_steps if np.any(slide != 0.0) else 0
         history = []
         state = None
+        self.slide = 0.0 * slide
         for k in range(1, n_steps + 1):
             self.lift = depth * (1.0 - k / n_steps)
-            u, state = self._solve_step(u, depth, history, state, final=k == n_steps)
+            u, state = self._solve_step(u, depth, history, state,
+                                        final=k == n_steps and n_slide == 0)
+        for k in range(1, n_slide + 1):
+            self.slide = slide * (k / n_slide)
+            u, state = self._solve_step(u, depth, history, state, final=k == n_slide)
         return self._solution(u, state, history)
 
     def _solve_step(self, u, depth, history, state, final=True):
@@ -632,6 +654,7 @@ class _Solve:
         # friction, its bound mu t_N being ~0).
         seen = set()
         no_stick = np.zeros(nc, bool)
+        mixing = []  # (slip forces in, slip forces out) of the steps since the sets settled
         for it in range(1, st.max_iterations + 1):
             self.newton_steps += 1
             c = self.constraints(u)
@@ -644,14 +667,15 @@ class _Solve:
             rhs[:, 0] = -c.gap[:nc]
             tang = _tangent_basis(normals)  # (nc, 2, 3)
             rows[:, 1:] = tang
-            uc = u[self.cand_nodes]
+            uc = u[self.cand_nodes] - self.slide  # relative to the indenter's slide
             rhs[:, 1:] = -np.einsum("kij,kj->ki", tang, uc)
             nrows = np.where(act_n, np.where(stick, 3, 1), 0)
             E, p = self._reduction(rows, rhs, nrows)
             # ---- residual and tangent (slip forces are loads of this step)
             sets_key = (act_n.tobytes(), stick.tobytes())
+            # (the small-strain tangent depends on the sets alone: always reused)
             reuse = (cached is not None and cached[0] == sets_key
-                     and contraction <= st.reuse_contraction)
+                     and (not self.geometric or contraction <= st.reuse_contraction))
             if reuse:
                 f_int, K = self.gel.forces(u), cached[2]
             else:
@@ -724,7 +748,8 @@ class _Solve:
                 new_p[stuck] = True
             normals = self.indenter_normals(u)[self.cand_nodes]
             bound = self.friction_bound(np.maximum(lam_n, 0.0))
-            uT = u[self.cand_nodes] - np.einsum("ki,ki->k", u[self.cand_nodes], normals)[:, None] * normals
+            rel = u[self.cand_nodes] - self.slide  # slip relative to the indenter
+            uT = rel - np.einsum("ki,ki->k", rel, normals)[:, None] * normals
             tau = f_T - self.c_node[:, None] * uT
             tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
             nt = np.linalg.norm(tau, axis=1)
@@ -741,6 +766,14 @@ class _Solve:
             slip_change = float(np.abs(f_slip - state["f_slip"]).max(initial=0.0)) / scale
             same = (np.array_equal(new_n, act_n) and np.array_equal(new_p, state["active_p"])
                     and np.array_equal(new_stick, stick))
+            # With the sets fixed the slip forces are a fixed point x -> g(x) (their loads give
+            # the tractions that give them back), contracting by 0.6-0.9 a step: Anderson mixing
+            # over the last few steps takes it to its limit in a few.
+            if same:
+                mixing.append((state["f_slip"], f_slip))
+                f_slip = _anderson(mixing[-st.anderson_depth:])
+            else:
+                mixing.clear()
             step = float(np.abs(dU).max()) * t
             pen = float(max(0.0, -c.gap.min())) if len(c.gap) else 0.0
             history.append((self.newton_steps, pen, step))
@@ -811,6 +844,20 @@ class _Solve:
                                               & state["active_n"]],
                   "point_force_n": np.asarray(lam_p, float).copy()},
         )
+
+
+def _anderson(pairs: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Anderson mixing (type II) of a fixed point x = g(x): ``pairs`` are the last (x_k, g(x_k))
+    (arrays of one shape), oldest first. Returns the next x: g(x_k) less the combination of
+    earlier differences that best cancels the residual g(x_k) - x_k (least squares)."""
+    x_k, g_k = pairs[-1]
+    if len(pairs) < 2:
+        return g_k
+    F = np.stack([(g - x).ravel() for x, g in pairs], axis=1)
+    G = np.stack([g.ravel() for _, g in pairs], axis=1)
+    dF, dG = np.diff(F, axis=1), np.diff(G, axis=1)
+    gamma = np.linalg.lstsq(dF, F[:, -1], rcond=None)[0]
+    return (G[:, -1] - dG @ gamma).reshape(g_k.shape)
 
 
 def _tangent_basis(normals: np.ndarray) -> np.ndarray:
