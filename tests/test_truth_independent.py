@@ -90,34 +90,48 @@ def ball_at_1mm():
 
 @pytest.mark.slow
 def test_ball_pressed_1mm_stays_on_the_indenters_surface(ball_at_1mm):
-    """No penetration anywhere on the continuous surface (measured 5.73 um), no tensile
+    """No penetration anywhere on the continuous surface (measured 6.43 um, near the apex,
+    where the gel's surface triangles are stretched from ~0.23 to ~0.3 mm), no tensile
     traction, gap and force complementary; the apex reaches the commanded depth."""
     sol, field = ball_at_1mm
     _, tip_depth = check_resolved_contact(sol, field, geometric=True, label="2 mm ball, 1.0 mm")
     assert tip_depth == pytest.approx(BALL_DEPTH_MM, abs=1e-3)
 
 
+@pytest.fixture(scope="module")
+def independent_ball_at_1mm():
+    """The independent FEM's solution of the same press: 0.1 mm P2 triangles (0.05 % in force
+    and 2.5 um in the surface from the twice finer mesh)."""
+    return ref.press_sphere(PAD_RADIUS_MM, THICKNESS_MM, E_MPA, NU,
+                            sphere_radius_mm=BALL_RADIUS_MM, depth_mm=BALL_DEPTH_MM,
+                            h_fine_mm=0.1, steps=20)
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "at the automatic truth mesh (fine spacing 0.173 mm, bulk growing to 2 mm) the resolved "
-    "solver's force is 2.5 % above the converged independent FEM and its surface up to 12.1 um "
-    "from it at the contact edge; it meets 2 % and 10 um on a finer mesh (fine spacing 0.124 mm, "
-    "bulk at most 0.5 mm: x1.017, 8.1 um), not at the default one; docs/fem.md"))
-def test_sphere_at_1mm_matches_the_independent_fem(ball_at_1mm):
-    # the reference: 0.1 mm P2 triangles (0.05 % in force and 2.5 um in the surface from the
-    # twice finer mesh)
-    expected = ref.press_sphere(PAD_RADIUS_MM, THICKNESS_MM, E_MPA, NU,
-                                sphere_radius_mm=BALL_RADIUS_MM, depth_mm=BALL_DEPTH_MM,
-                                h_fine_mm=0.1, steps=20)
+def test_sphere_at_1mm_has_the_independent_fems_surface(ball_at_1mm, independent_ball_at_1mm):
+    """The deformed sensing surface within 10 um of the independent FEM's everywhere (24
+    azimuths, every 5 um in radius). Measured 7.17 um at the contact edge (12.1 um before the
+    truth mesh followed the ball's curvature at its steep rim)."""
+    expected = independent_ball_at_1mm
     sol, _ = ball_at_1mm
     rho = np.arange(0.0, PAD_RADIUS_MM - 0.5, 0.005)
     ours = surface_profile_mm(sol, rho, np.arange(0.0, 360.0, 15.0))
     theirs = np.interp(rho, expected.profile_r_mm, expected.profile_z_mm)
     diff = np.abs(ours - theirs[None])
     worst = np.unravel_index(diff.argmax(), diff.shape)
-    print(f"force {sol.force_n:.5f} N vs independent FEM {expected.force_n:.5f} N "
-          f"(x{sol.force_n / expected.force_n:.4f}); surface: largest difference "
-          f"{diff.max() * 1e3:.2f} um at r = {rho[worst[1]]:.3f} mm; contact radius "
-          f"{expected.contact_radius_mm:.3f} mm")
-    assert sol.force_n == pytest.approx(expected.force_n, rel=0.02)
+    print(f"surface: largest difference {diff.max() * 1e3:.2f} um at r = {rho[worst[1]]:.3f} mm; "
+          f"contact radius {expected.contact_radius_mm:.3f} mm")
     assert diff.max() <= 10e-3
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "at the automatic truth mesh (fine spacing 0.173 mm, bulk growing to 2 mm) the resolved "
+    "solver's force is 2.5 % above the converged independent FEM; it meets 2 % on a finer mesh "
+    "(fine spacing 0.124 mm, bulk at most 0.5 mm: x1.017), not at the default one; docs/fem.md"))
+def test_sphere_at_1mm_has_the_independent_fems_force(ball_at_1mm, independent_ball_at_1mm):
+    expected = independent_ball_at_1mm
+    sol, _ = ball_at_1mm
+    print(f"force {sol.force_n:.5f} N vs independent FEM {expected.force_n:.5f} N "
+          f"(x{sol.force_n / expected.force_n:.4f})")
+    assert sol.force_n == pytest.approx(expected.force_n, rel=0.02)

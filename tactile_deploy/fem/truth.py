@@ -63,6 +63,9 @@ H_FINE_MAX_MM = 0.27
 H_FINE_PER_RADIUS = 1.0 / 10.0
 #: Smallest fine spacing.
 H_FINE_MIN_MM = 0.05
+#: Largest chord sag (mm) of the sensing surface under a curved indenter: where the indenter
+#: curves by kappa (1/mm), edges are at most sqrt(8 SAG / kappa) long (sag = h^2 kappa / 8).
+CHORD_SAG_MM = 0.003
 
 
 class TruthSolveError(RuntimeError):
@@ -278,7 +281,8 @@ class TruthSolver:
         sharp = float(field_(tip[None])[0] - np.mean(field_(ring))) > 0.3 * probe
         spots = [(float(tip[0]), float(tip[1]), 0.25 * h_fine_mm)] if sharp else []
         mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
-                                surface_nodes_xy=tip[None], point_sizes=spots)
+                                surface_nodes_xy=tip[None], point_sizes=spots,
+                                curvature_sizes=curvature_sizes(field_, pts, h_fine_mm))
         return mesh, h_fine_mm, pts
 
     def solve(self, indenter, pose, **kwargs) -> TruthSolution:
@@ -302,6 +306,31 @@ class TruthSolver:
             if h_fine_mm is None:
                 h_fine_mm = float(np.sqrt(mesh.sensing_nodal_areas_mm2().min() * 2.0))
         return _Solve(self, mesh, field_, h_fine_mm, fp, features, slide_mm).run()
+
+
+def curvature_sizes(field_: IntrusionField, fp: np.ndarray, h_fine_mm: float,
+                    step_mm: float = 0.02) -> np.ndarray:
+    """Edge lengths the indenter's curvature asks for: (k, 3) rows (x, y, size mm) at the
+    footprint points ``fp`` (k0, 2) where the largest second derivative of the intrusion
+    (along x, y and the diagonals, central differences over ``step_mm``) kappa would make a
+    chord of the fine spacing sag by more than :data:`CHORD_SAG_MM` (the steep rim of a ball,
+    a rounded edge). Sizes are sqrt(8 sag / kappa), at least :data:`H_FINE_MIN_MM`. Points where
+    a difference leaves the indenter (its outline) are skipped: their kink is the edge of
+    contact, not a curvature."""
+    if len(fp) == 0:
+        return np.zeros((0, 3))
+    d0 = field_(fp)
+    kappa = np.zeros(len(fp))
+    for e in (np.array([1.0, 0.0]), np.array([0.0, 1.0]),
+              np.array([1.0, 1.0]) / np.sqrt(2), np.array([1.0, -1.0]) / np.sqrt(2)):
+        dp, dm = field_(fp + step_mm * e), field_(fp - step_mm * e)
+        second = (dp + dm - 2.0 * d0) / step_mm**2
+        ok = np.isfinite(second) & (dp > 0) & (dm > 0)
+        kappa = np.maximum(kappa, np.where(ok, np.abs(second), 0.0))
+    size = np.sqrt(8.0 * CHORD_SAG_MM / np.maximum(kappa, 1e-300))
+    need = size < h_fine_mm
+    size = np.maximum(size[need], H_FINE_MIN_MM)
+    return np.column_stack([fp[need], size])
 
 
 def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,

@@ -69,14 +69,18 @@ class TruthMesh(PadMesh):
 def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: float,
                      h_coarse_mm: float = 2.0, growth: float = 1.2,
                      surface_nodes_xy: np.ndarray | None = None,
-                     point_sizes: list[tuple[float, float, float]] = ()) -> TruthMesh:
+                     point_sizes: list[tuple[float, float, float]] = (),
+                     curvature_sizes: np.ndarray | None = None,
+                     curvature_growth: float = 1.5) -> TruthMesh:
     """A pad mesh refined over ``region_xy`` (k, 2) mm (points where contact can occur).
 
     ``h_fine_mm``: edge length over the region; ``h_coarse_mm``: the largest edge length;
     ``growth``: 1 + the increase of the edge length per mm of distance from the region;
     ``surface_nodes_xy`` (k, 2): points of the sensing surface that must be nodes (an
     indenter's tip); ``point_sizes``: (x, y, size) triples, finer spots on the sensing surface
-    (around a sharp tip) whose size grows by ``growth`` from there. The centres of the sensing surface and of the backplate are always nodes
+    (around a sharp tip) whose size grows by ``growth`` from there; ``curvature_sizes`` (k, 3):
+    more such (x, y, size) spots, many (where a curved indenter needs shorter chords), whose
+    size grows by ``curvature_growth`` - 1 per mm. The centres of the sensing surface and of the backplate are always nodes
     (so that a uniform expansion leaves the centre in place: the pins of rolling supports).
     """
     import gmsh
@@ -87,6 +91,9 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
     region = np.asarray(region_xy, float).reshape(-1, 2)
     tree = cKDTree(region) if len(region) else None
     h = geometry.thickness_mm
+    spots = np.zeros((0, 3)) if curvature_sizes is None else np.asarray(curvature_sizes, float)
+    spot_tree = cKDTree(spots[:, :2]) if len(spots) else None
+    spot_reach = float((h_fine_mm - spots[:, 2].min()) / (curvature_growth - 1.0)) if len(spots) else 0.0
 
     def size(dim, tag, x, y, z, lc):
         if tree is None:
@@ -97,6 +104,12 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
         for px, py, ps in point_sizes:
             dp = ((x - px) ** 2 + (y - py) ** 2 + z * z) ** 0.5
             out = min(out, ps + (growth - 1.0) * dp)
+        if spot_tree is not None and -z < spot_reach:
+            near = spot_tree.query_ball_point((x, y), spot_reach)
+            if near:
+                q = spots[near]
+                dp = np.sqrt((q[:, 0] - x) ** 2 + (q[:, 1] - y) ** 2 + z * z)
+                out = min(out, float(np.min(q[:, 2] + (curvature_growth - 1.0) * dp)))
         return out
 
     gmsh.initialize(readConfigFiles=False)
