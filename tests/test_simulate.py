@@ -67,6 +67,28 @@ def test_single_contact_writes_the_documented_npz(tmp_path, pad_sim):
         assert str(bad) in str(err.value) and all(w in str(err.value) for w in words), err.value
 
 
+def test_a_slide_after_pressing_loads_the_gel_tangentially(tmp_path):
+    """`simulate --slide-x`: the indenter, pressed, then moved along x (Coulomb, mu 0.5). The
+    gel is dragged along +x by at most mu times the normal force, part of the contact slips
+    (partial slip is checked against Cattaneo-Mindlin in tests/test_truth.py), and the record
+    says how far the indenter slid."""
+    out = tmp_path / "slide.npz"
+    result = run("simulate", "--indenter", "sphere_r4", "--depth", 0.2, "--model", "linear",
+                 "--friction", "coulomb", "--mu", 0.5, "--slide-x", 0.03, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "tangential force" in " ".join(result.output.split())
+    contact = load_contact(out)
+    d, meta = contact.arrays, contact.metadata
+    assert meta.slide_mm == [0.03, 0.0] and meta.units["slide_mm"] == "mm"
+    fx, fy = meta.tangential_force_n
+    force = float(d["force_n"])
+    print(f"normal {force:.4f} N, tangential ({fx:.4f}, {fy:.4f}) N, contact nodes "
+          f"{int(d['contact_mask'].sum())}, sticking {int(d['stick_mask'].sum())}")
+    assert 0.05 * 0.5 * force < fx <= 0.5 * force * (1 + 1e-6)
+    assert abs(fy) < 0.02 * fx
+    assert 0 < d["stick_mask"].sum() < d["contact_mask"].sum()
+
+
 @pytest.mark.parametrize("name", list_indenters())
 def test_every_library_indenter_simulates(name, pad_sim):
     indenter = get_indenter(name)

@@ -109,6 +109,12 @@ def test_a_shard_of_another_dataset_is_refused_not_mixed_in(tmp_path, pad_sim):
         (("--n", 4, "--E", "nan", "--out", "ds"), ("--E nan", "MPa")),
         (("--indenter", "cone", "--depth", "nan", "--out", "one.npz"), ("--depth", "got nan")),
         (("--indenter", "cone", "--theta", "inf", "--out", "one.npz"), ("--theta", "got inf")),
+        (("--indenter", "cone", "--friction", "stick", "--slide-x", "nan", "--out", "one.npz"),
+         ("--slide-x", "got nan")),
+        (("--indenter", "cone", "--slide-x", 0.05, "--out", "one.npz"),
+         ("--slide-x/--slide-y", "without friction", "--friction stick")),
+        (("--indenter", "cone", "--friction", "stick", "--slide-y", 0.05, "--sensor", "gelslim2",
+          "--out", "one.npz"), ("--slide-x/--slide-y", "leave out --sensor")),
     ],
 )
 def test_option_errors_name_the_option_and_value(tmp_path, args, needles):
@@ -131,6 +137,7 @@ def test_another_spec_names_the_fields_that_differ(tmp_path, pad_sim):
         (("--indenter", "cone", "--depth", 0.3), ("--indenter, --depth", "--indenters", "--depth-range")),
         (("--x", 1.0, "--theta", 30), ("--x, --theta", "draws random contacts", "leave out --n")),
         (("--overwrite",), ("--overwrite", "new --out folder")),
+        (("--slide-x", 0.02), ("--slide-x", "leave out --n")),
     ],
 )
 def test_single_contact_options_are_refused_with_n(tmp_path, extra, needles):

@@ -35,7 +35,8 @@ def _indenter_list(text: str) -> tuple[str, ...]:
 
 #: Options of one contact (parameter name -> option; refused with --n).
 SINGLE_OPTIONS = {"indenter": "--indenter", "x": "--x", "y": "--y", "theta": "--theta",
-                  "depth": "--depth", "pressing_face": "--pressing-face", "overwrite": "--overwrite"}
+                  "depth": "--depth", "pressing_face": "--pressing-face", "overwrite": "--overwrite",
+                  "slide_x": "--slide-x", "slide_y": "--slide-y"}
 #: Options of a dataset (used with --n only).
 BATCH_OPTIONS = {"indenters": "--indenters", "shard_size": "--shard-size", "depth_range": "--depth-range",
                  "workers": "--workers", "storage": "--storage"}
@@ -60,6 +61,8 @@ def simulate_command(
     mu: float = typer.Option(1.0, "--mu", help="Coulomb friction coefficient gel/indenter (used by --friction coulomb)."),
     friction: str = typer.Option("frictionless", "--friction", help="Contact law: frictionless, stick, or coulomb (friction coefficient --mu)."),
     model: str = typer.Option("neo-hookean", "--model", help="Gel law of a single contact: neo-hookean (large deformation) or linear (its small-strain limit); both resolved at the depth-pixel scale."),
+    slide_x: float = typer.Option(0.0, "--slide-x", help="After pressing, slide the indenter this far along x (sensor frame), mm: a tangential load; needs --friction stick or coulomb."),
+    slide_y: float = typer.Option(0.0, "--slide-y", help="The same along y, mm."),
     pressing_face: str = typer.Option("top", "--pressing-face", help="For mesh files: 'top' if the feature is the top of the file (indenters standing on a base), 'bottom' if it already faces -z."),
     out: Path = typer.Option(..., "--out", help="FILE.npz for one contact; a folder with --n."),
     n: Optional[int] = typer.Option(None, "--n", help="Batch mode: number of random contacts."),
@@ -95,6 +98,9 @@ def simulate_command(
     if sensor is not None:
         if n is not None:
             fail("--sensor simulates one contact; leave out --n")
+        if slide_x or slide_y:
+            fail("--slide-x/--slide-y apply to a resolved contact without --sensor (a virtual "
+                 "sensor's frames are of a straight press); leave out --sensor to slide")
         if indenter is None:
             fail("give --indenter NAME|PATH for the contact")
         from tactile_deploy.cli.simulate_sensor import single_sensor_contact
@@ -109,7 +115,11 @@ def simulate_command(
                  f"{'them' if len(batch_only) > 1 else 'it'} out for one contact")
         if indenter is None:
             fail("give --indenter NAME|PATH for one contact, or --n N for a dataset")
-        _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite, model)
+        if (slide_x or slide_y) and friction == "frictionless":
+            fail("--slide-x/--slide-y move the indenter along the surface after pressing; without "
+                 "friction that loads nothing: add --friction stick, or --friction coulomb --mu MU")
+        _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite, model,
+                (slide_x, slide_y))
     else:
         if friction == "coulomb":
             fail("--friction coulomb is solved by the resolved single-contact solver; datasets "
@@ -144,7 +154,7 @@ def _single_options_with_n(given: list[str]) -> str:
 
 
 def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, overwrite: bool,
-            model: str = "neo-hookean") -> None:
+            model: str = "neo-hookean", slide_mm: tuple[float, float] = (0.0, 0.0)) -> None:
     from pydantic import ValidationError
 
     from tactile_deploy.atomic import write_npz
@@ -157,7 +167,8 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
         check_output_file(out, "--out", overwrite=overwrite, suffixes=(".npz",))
     except OutputPathError as e:
         fail(str(e))
-    for option, value in (("--x", x), ("--y", y), ("--theta", theta), ("--depth", depth)):
+    for option, value in (("--x", x), ("--y", y), ("--theta", theta), ("--depth", depth),
+                          ("--slide-x", slide_mm[0]), ("--slide-y", slide_mm[1])):
         if not math.isfinite(value):
             fail(f"{option} must be a finite number ({'degrees' if option == '--theta' else 'mm'}), got {value}")
     try:
@@ -166,7 +177,7 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
     except (ValueError, FileNotFoundError, OSError, ValidationError) as exc:
         fail(str(exc))
     try:
-        sample = simulate_resolved(ind, pose, material, model=model)
+        sample = simulate_resolved(ind, pose, material, model=model, slide_mm=slide_mm)
     except ContactError as exc:
         fail(str(exc))
     except TruthSolveError as exc:
@@ -179,6 +190,10 @@ def _single(indenter, pressing_face, x, y, theta, depth, material, out: Path, ov
         f"-> force {sample.force_n:.4f} N, {int(sample.contact_mask.sum())} sensing nodes in "
         f"contact{stick}, max depth {float(sample.depth_mm.max()):.3f} mm, largest penetration "
         f"{1e3 * sample.metadata['max_penetration_mm']:.2f} um"
+        + ("" if not any(slide_mm) else
+           f"; slid ({slide_mm[0]:g}, {slide_mm[1]:g}) mm -> tangential force "
+           f"({sample.metadata['tangential_force_n'][0]:.4f}, "
+           f"{sample.metadata['tangential_force_n'][1]:.4f}) N")
     )
 
 

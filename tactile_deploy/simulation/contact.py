@@ -185,6 +185,7 @@ def simulate_resolved(
     model: str = "neo-hookean",
     camera: DepthCamera | None = None,
     pad: str = "gelslim",
+    slide_mm: tuple[float, float] = (0.0, 0.0),
 ) -> ContactSample:
     """Resolved contact (:class:`tactile_deploy.fem.truth.TruthSolver`) carried onto the frozen
     pad mesh: ``vertices_mm`` are the truth displacements interpolated at its nodes,
@@ -192,6 +193,8 @@ def simulate_resolved(
     ``contact_mask`` the truth contact interpolated at its sensing nodes.
 
     ``model``: "neo-hookean" (large deformation) or "linear" (its small-strain limit).
+    ``slide_mm``: (x, y) mm, sensor frame: after pressing, the indenter moves this far along the
+    surface (a tangential load; needs friction "stick" or "coulomb"); recorded in the metadata.
     """
     from tactile_deploy.fem.transfer import Transfer
     from tactile_deploy.fem.truth import TruthSolver
@@ -200,7 +203,8 @@ def simulate_resolved(
     cam = camera or get_camera()
     check_pose(mesh, indenter, pose)
     solver = TruthSolver(mesh.geometry, material, model=model)
-    sol = solver.solve(indenter, pose)
+    slide = (float(slide_mm[0]), float(slide_mm[1]))
+    sol = solver.solve(indenter, pose, slide_mm=slide)
     truth = sol.mesh
     transfer = Transfer(truth.vertices, truth.tets, mesh.vertices)
     u = transfer(sol.displacements_mm)
@@ -246,13 +250,14 @@ def simulate_resolved(
                            "n_constraints": int(info["n_constraints"])},
             "max_penetration_mm": sol.max_penetration_mm,
             "tangential_force_n": [float(v) for v in sol.tangential_force_n],
+            **({"slide_mm": list(slide)} if any(slide) else {}),
             "generator_version": GENERATOR_VERSION,
             "units": {
                 "depth": "mm", "depth_detail": "mm", "vertices": "mm", "rest_vertices": "mm",
                 "force_n": "N", "pressure_kpa": "kPa", "pose.x_mm": "mm", "pose.y_mm": "mm",
                 "pose.depth_mm": "mm", "pose.theta_deg": "deg", "material.E_mpa": "MPa",
                 "material.nu": "1", "material.mu": "1", "tangential_force_n": "N",
-                "max_penetration_mm": "mm",
+                "max_penetration_mm": "mm", "slide_mm": "mm",
             },
             "depth": RESOLVED_DEPTH_MEANING,
             "depth_detail": DEPTH_DETAIL_MEANING,

@@ -109,6 +109,9 @@ class ContactMetadata(StrictModel):
     tangential_force_n: list[float] | None = Field(
         None, min_length=2, max_length=2, description="Resolved contacts: (x, y) tangential "
         "force on the gel, N, sensor frame.")
+    slide_mm: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="Resolved contacts: (x, y) slide of the "
+        "indenter along the surface after it was pressed, mm, sensor frame (absent: none).")
     sensor: str | None = Field(None, description="Virtual sensor that rendered ``frame``.")
     pose_reached: ContactPose | None = Field(None, description="Virtual sensors: the pose after "
                                              "contact effects (sensor frame).")
