@@ -879,7 +879,7 @@ def _anderson(pairs: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """Anderson mixing (type II) of a fixed point x = g(x): ``pairs`` are the last (x_k, g(x_k))
     (arrays of one shape), oldest first. Returns the next x: g(x_k) less the combination of
     earlier differences that best cancels the residual g(x_k) - x_k (least squares)."""
-    x_k, g_k = pairs[-1]
+    g_k = pairs[-1][1]
     if len(pairs) < 2:
         return g_k
     F = np.stack([(g - x).ravel() for x, g in pairs], axis=1)
