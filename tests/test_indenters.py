@@ -439,3 +439,69 @@ def test_benchmark_runs_at_small_settings():
     results = run(small=True)
     assert set(results) >= {"raster_10k_min", "raster_pad_max", "intrusion_1100"}
     assert all(r["min_ms"] > 0 for r in results.values())
+
+
+def _polygon_signed_distance(q: np.ndarray, corners: np.ndarray):
+    """Signed distance (k,) of points q (k, 2) to a convex polygon (corners (m, 2) in
+    counter-clockwise order), negative inside, and the outward unit gradient (k, 2)."""
+    best = np.full(len(q), np.inf)
+    grad = np.zeros((len(q), 2))
+    inside = np.ones(len(q), bool)
+    for a, b in zip(corners, np.roll(corners, -1, axis=0)):
+        ab = b - a
+        t = np.clip((q - a) @ ab / (ab @ ab), 0.0, 1.0)
+        diff = q - (a + t[:, None] * ab)
+        dist = np.linalg.norm(diff, axis=1)
+        closer = dist < best
+        best = np.where(closer, dist, best)
+        grad = np.where(closer[:, None], diff / np.maximum(dist, 1e-300)[:, None], grad)
+        inside &= ab[0] * (q[:, 1] - a[1]) - ab[1] * (q[:, 0] - a[0]) > 0
+    return np.where(inside, -best, best), np.where(inside[:, None], -grad, grad)
+
+
+def test_coverage_distance_follows_a_punch_outline():
+    """The hexagonal punch's outline (a wall in the resolved solver) against the hexagon
+    itself: the signed distance from its corners (read from the indenter's mesh, not from the
+    rasterised envelope) at 4,000 points within 0.15 mm of the rim, at a rotated pose."""
+    from scipy.spatial import ConvexHull
+
+    ind = get_indenter("hexagon")
+    pose = ContactPose(x_mm=1.0, y_mm=-0.5, theta_deg=37.0, depth_mm=0.3)
+    v = np.asarray(ind.mesh.vertices)
+    face = v[np.abs(v[:, 2] - v[:, 2].min()) < 1e-9, :2]
+    corners = face[ConvexHull(face).vertices]  # counter-clockwise, indenter frame
+    rng = np.random.default_rng(3)
+    radius = rng.uniform(2.8, 3.7, 20000)
+    angle = rng.uniform(0.0, 2 * math.pi, 20000)
+    q = np.stack([radius * np.cos(angle), radius * np.sin(angle)], 1)
+    ref, ref_grad = _polygon_signed_distance(q, corners)
+    keep = np.abs(ref) < 0.15
+    q, ref, ref_grad = q[keep][:4000], ref[keep][:4000], ref_grad[keep][:4000]
+    c, s = math.cos(math.radians(pose.theta_deg)), math.sin(math.radians(pose.theta_deg))
+    p = np.stack([c * q[:, 0] - s * q[:, 1] + pose.x_mm, s * q[:, 0] + c * q[:, 1] + pose.y_mm], 1)
+    dist, grad = ind.coverage_distance_mm(p, pose)
+    err = dist - ref
+    pitch = ind.envelope_grid().pitch_mm
+    assert np.abs(err).max() <= pitch  # the rasterised staircase is within a pixel of the line
+    assert np.abs(err).mean() <= 0.3 * pitch
+    ref_grad_sensor = np.stack([c * ref_grad[:, 0] - s * ref_grad[:, 1],
+                                s * ref_grad[:, 0] + c * ref_grad[:, 1]], 1)
+    cosine = np.einsum("ki,ki->k", grad, ref_grad_sensor)
+    # the corners of the hexagon (120 degrees) turn the gradient; along the edges it is the
+    # edge's normal
+    assert np.median(cosine) > math.cos(math.radians(3.0))
+    assert np.mean(cosine > math.cos(math.radians(15.0))) > 0.95
+    # the sign agrees with where the envelope is defined (the cells whose four corner pixels
+    # are inside the hexagon: up to a pixel's diagonal inside it), away from the staircase
+    finite = np.isfinite(ind.intrusion_mm(p, pose))
+    clear = np.abs(ref) > 1.5 * pitch
+    assert np.array_equal(finite[clear], (dist < 0)[clear])
+
+
+def test_analytic_coverage_distance_is_exact():
+    ball = AnalyticSphere(2.0)
+    pose = ContactPose(x_mm=0.5, y_mm=0.2, theta_deg=10.0, depth_mm=0.5)
+    p = np.array([[0.5, 0.2 + 2.5], [0.5 + 1.0, 0.2], [0.5, 0.2]])
+    dist, grad = ball.coverage_distance_mm(p, pose)
+    np.testing.assert_allclose(dist, [0.5, -1.0, -2.0], atol=1e-12)
+    np.testing.assert_allclose(grad[:2], [[0.0, 1.0], [1.0, 0.0]], atol=1e-12)

@@ -62,6 +62,20 @@ def sphere(radius_mm: float, depth_mm: float, centre=(0.0, 0.0)) -> IntrusionFie
     return IntrusionField(fn)
 
 
+def flat_punch(radius_mm: float, depth_mm: float) -> IntrusionField:
+    """A rigid circular flat punch (sharp rim, vertical side) centred on the pad, pushed
+    ``depth_mm`` in; its outline's signed distance tells the solver where its side is."""
+    def fn(xy):
+        return np.where(np.hypot(xy[:, 0], xy[:, 1]) < radius_mm, depth_mm, -np.inf)
+
+    def coverage(xy):
+        r = np.hypot(xy[:, 0], xy[:, 1])
+        away = np.where(r[:, None] > 0, xy / np.maximum(r, 1e-300)[:, None], [[1.0, 0.0]])
+        return r - radius_mm, away
+
+    return IntrusionField(fn, coverage=coverage)
+
+
 @pytest.fixture(scope="module")
 def block_mesh():
     return build_truth_mesh(BLOCK, np.zeros((0, 2)), h_fine_mm=1.0, h_coarse_mm=1.0)
@@ -390,6 +404,36 @@ def test_partial_slip_matches_cattaneo_mindlin():
     assert np.all(ft[:, 0] > 0)
     np.testing.assert_allclose(np.linalg.norm(ft, axis=1), mu * sol.normal_force_n[slip],
                                rtol=1e-3)
+
+
+@pytest.mark.slow
+def test_flat_punch_wraps_its_rim_at_large_strain():
+    """A circular flat punch (radius 1 mm, sharp rim, vertical side) on the bonded 3 mm pad.
+    At 0.01 mm the neo-Hookean solve (contact with the punch's face and side, at current
+    positions) has the linear solve's force: the small-strain limit (the linear solve has
+    no side, only vertical gaps at rest positions). At 0.3 mm (10 % of the thickness) it
+    converges with no sensing node inside the punch, the gel bulging up against its side,
+    and no node kept in contact against cycling."""
+    a = 1.0
+    forces = {}
+    for model in ("linear", "neo-hookean"):
+        solver = TruthSolver(SMALL_PAD, Material(E_mpa=0.3, nu=0.45), model=model)
+        forces[model] = solver.solve_field(flat_punch(a, 0.01), h_fine_mm=0.2).force_n
+    print(f"small strain: linear {forces['linear']:.6f} N, neo-Hookean {forces['neo-hookean']:.6f} N")
+    assert forces["neo-hookean"] == pytest.approx(forces["linear"], rel=2e-3)
+    depth = 0.3
+    solver = TruthSolver(SMALL_PAD, Material(E_mpa=0.3, nu=0.45))
+    sol = solver.solve_field(flat_punch(a, depth), h_fine_mm=0.2)
+    P = sol.vertices_mm[: sol.mesh.n_plane]
+    r = np.hypot(P[:, 0], P[:, 1])
+    inside = np.minimum(a - r, P[:, 2] + depth)  # > 0: inside the punch
+    on_side = sol.in_contact & (P[:, 2] > -depth + 0.01)
+    print(f"0.3 mm: {sol.force_n:.4f} N, {sol.info['newton_steps']} Newton steps, deepest "
+          f"inside {inside.max() * 1e3:.3g} um, {on_side.sum()} nodes on the side, up to "
+          f"{(P[on_side, 2] + depth).max(initial=0) * 1e3:.0f} um above the rim")
+    assert inside.max() <= 1e-5
+    assert on_side.any() and np.all(np.abs(r[on_side] - a) <= 1e-5)
+    assert len(sol.info["kept_nodes"]) == 0 and sol.info["load_splits"] == 0
 
 
 def test_a_slide_needs_friction():

@@ -3,36 +3,39 @@
 Data flow of :meth:`TruthSolver.solve`::
 
     indenter + pose --(intrusion footprint)--> refinement region, fine spacing
-        --> truth mesh (tactile_deploy.fem.truth_mesh: refined where contact can occur)
+        --> truth mesh (tactile_deploy.fem.truth_mesh: refined where contact can occur,
+            finer where the indenter curves and along a punch's rim)
         --> contact constraints on the continuous surface (below)
-        --> augmented-Lagrangian Newton solve (neo-Hookean or linear gel, Coulomb friction)
+        --> semismooth Newton on the contact sets (neo-Hookean or linear gel, Coulomb friction)
         --> TruthSolution (truth-mesh displacements, nodal contact forces, stick/slip)
 
-Contact (sensor frame, mm; the indenter moves only along -z). The indenter's lower surface is
-``z = -delta(x, y)`` (``delta`` = its intrusion below the rest surface, from the indenter's
-envelope). Two families of gap constraints ``g >= 0`` keep the gel's piecewise-linear surface
-below it everywhere:
+Contact (sensor frame, mm; the indenter moves only along -z). The indenter is the solid above
+its lower surface ``z = -delta(x, y)`` (``delta`` = its intrusion below the rest surface, from
+the indenter's envelope); where the envelope ends in a wall (a punch's side), the solid's side
+rises vertically along the envelope's outline. Two families of gap constraints ``g >= 0`` keep
+the gel's piecewise-linear surface outside it:
 
-* **gel points**: every sensing node p of the truth mesh near the contact,
-  ``g = -delta(p_x, p_y) - p_z`` at its *current* position (its gradient is the indenter's
-  normal, so the contact traction is normal to the indenter);
-* **indenter points**: the indenter's surface sampled over the contact (every envelope pixel on
-  a sharp convex feature such as a cone tip, an edge or a punch rim, and a grid at a third of the
-  fine spacing elsewhere): ``g = z_i - z_gel(x_i, y_i)``, the gel's current surface height under
-  the point, so a feature between nodes cannot pass through a triangle.
+* **gel points**: every sensing node p of the truth mesh near the contact, at its *current*
+  position: ``g`` its distance to the solid to first order (:func:`solid_gap`: the face's
+  normalised vertical gap; beside a wall the horizontal distance to it, below a sharp rim the
+  distance to the rim). Its gradient is the solid's normal, so the contact traction is normal
+  to the indenter;
+* **indenter points**: the indenter's sharp convex features over the contact (cone and pyramid
+  tips, edges pointing into the gel): ``g = z_i - z_gel(x_i, y_i)``, the gel's current surface
+  height under the point, so a feature between nodes cannot pass through a triangle.
 
 ``model="linear"`` is the small-strain limit: linear material, gaps along z at the rest
 positions. Friction (per sensing node, tangent plane of the indenter at the node): frictionless,
 stick (no tangential displacement where in contact), or Coulomb with coefficient mu (traction
 ``|t_T| <= mu t_N``, slip opposite to the traction). Slip is measured from the rest position
-(one load step, the indenter pressed straight down).
+(the indenter pressed straight down; a slide after pressing is measured relative to it).
 
 The complementarity problem is solved exactly to a tolerance (no penalty stiffness remains in
-the solution): an augmented Lagrangian with multipliers updated after each Newton step
-(``lambda <- max(0, lambda - rho g)``; friction: ``t <- proj(t - rho_T u_T)`` onto the Coulomb
-disc), Newton on the augmented energy with a backtracking line search, until the largest
-penetration, the largest change of the multipliers and the force residual are below their
-tolerances.
+the solution): semismooth Newton on the contact, stick and slip sets (primal-dual active set),
+each step solving the tangent system with the active constraints holding exactly in their
+linearised form; the sets are re-chosen after each step from the complementarity functions
+(:meth:`_Solve._solve_step`). Large deformation: the depth in increments of a tenth of the
+thickness, an increment that fails halved. docs/fem.md states what is validated against what.
 
 Units: mm, MPa, N. The solution is computed at the given E (forces scale with E).
 """
@@ -66,6 +69,11 @@ H_FINE_MIN_MM = 0.05
 #: Largest chord sag (mm) of the sensing surface under a curved indenter: where the indenter
 #: curves by kappa (1/mm), edges are at most sqrt(8 SAG / kappa) long (sag = h^2 kappa / 8).
 CHORD_SAG_MM = 0.003
+#: How far inside an indenter's outline (mm) the height of its face at the rim is read.
+RIM_PROBE_MM = 0.04
+#: An indenter's outline is a wall (a punch's side) where its face there reaches this far
+#: (mm) below the rest surface.
+RIM_WALL_MM = 0.02
 
 
 class TruthSolveError(RuntimeError):
@@ -93,6 +101,7 @@ class SolveSettings:
     reuse_contraction: float = 0.8
     anderson_depth: int = 5  # steps remembered when mixing the slip forces
     slide_steps: int = 2  # increments of a tangential slide (after the indenter is pressed)
+    max_load_splits: int = 3  # failed depth increments retried as two halves, at most
 
 
 @dataclass
@@ -139,11 +148,16 @@ class IntrusionField:
     """The indenter's intrusion ``delta(x, y)`` (mm) below the rest surface and its gradient.
 
     ``fn(xy (k, 2)) -> (k,)`` mm, -inf where the indenter does not cover the point.
+    ``coverage(xy (k, 2)) -> (signed distance (k,) mm, unit gradient (k, 2))``, optional: the
+    signed distance to the edge of the covered region (negative inside). Where it is given, the
+    indenter is the solid above ``z = -delta`` bounded by vertical walls along that edge (a
+    punch's side), and gaps are distances to that solid (:func:`solid_gap`).
     """
 
-    def __init__(self, fn, step_mm: float = 1e-4):
+    def __init__(self, fn, step_mm: float = 1e-4, coverage=None):
         self.fn = fn
         self.step = step_mm
+        self.coverage = coverage
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         return np.asarray(self.fn(np.asarray(xy, np.float64)), np.float64)
@@ -168,7 +182,76 @@ class IntrusionField:
 
 def indenter_field(indenter, pose) -> IntrusionField:
     """Intrusion field of a library indenter (``tactile_deploy.indenters``) at ``pose``."""
-    return IntrusionField(lambda xy: indenter.intrusion_mm(xy, pose))
+    coverage = None
+    if hasattr(indenter, "coverage_distance_mm"):
+        coverage = lambda xy: indenter.coverage_distance_mm(xy, pose)  # noqa: E731
+    return IntrusionField(lambda xy: indenter.intrusion_mm(xy, pose), coverage=coverage)
+
+
+def solid_gap(field_: IntrusionField, p: np.ndarray, from_side: np.ndarray | None = None,
+              with_side: bool = False):
+    """Gap (k,) mm and unit normal (k, 3) of points p (k, 3) (sensor frame, mm) against the
+    indenter solid, in the deformed configuration.
+
+    The solid is ``z >= -delta(x, y)`` over the region the indenter covers. The gap is its
+    signed distance to first order (negative inside); the normal is the gap's gradient
+    (pointing out of the indenter, into the gel):
+
+    * the face: ``g = (-delta - z) / sqrt(1 + |grad delta|^2)``;
+    * without ``field_.coverage``: the face wherever the indenter covers the point, +inf
+      elsewhere (the indenter is its pressing surface only);
+    * with it, the covered region ends in a vertical wall along its outline (a punch's side).
+      Beside the outline and above the rim (where face and wall meet): the horizontal distance
+      to the wall; below the rim: the distance to the rim (a sharp edge: the normal turns
+      from the wall's to the face's). Inside the solid, the wall pushes out sideways only the
+      points flagged ``from_side`` (k,) that are nearer the wall than the face (they were
+      beside the indenter before: they came in through its side, not by the indenter coming
+      down on them); the others are pushed back through the face.
+
+    ``with_side``: also return a mask (k,) of the points beside the indenter (outside its
+    outline) or measured against its wall: the ``from_side`` of the next evaluation.
+    """
+    p = np.asarray(p, np.float64)
+    d, grad = field_.with_gradient(p[:, :2])
+    norm = np.sqrt(1.0 + (grad**2).sum(1))
+    covered = np.isfinite(d)
+    gap = np.where(covered, (-d - p[:, 2]) / norm, np.inf)
+    normal = np.column_stack([-grad, -np.ones(len(p))]) / norm[:, None]
+    if field_.coverage is None or len(p) == 0:
+        return (gap, normal, np.zeros(len(p), bool)) if with_side else (gap, normal)
+    side_flag = np.zeros(len(p), bool) if from_side is None else np.asarray(from_side, bool)
+    sd, away = field_.coverage(p[:, :2])
+    beside = sd > 0
+    # The outline is the coverage's (a smooth line through the envelope's pixel staircase);
+    # near it the face's height is read just inside it, where the intrusion is surely defined.
+    fix = (~covered | (sd > -RIM_PROBE_MM)) & np.isfinite(sd)
+    if np.any(fix):
+        probe = p[fix, :2] - (np.maximum(sd[fix], -RIM_PROBE_MM) + RIM_PROBE_MM)[:, None] * away[fix]
+        d_r, grad_r = field_.with_gradient(probe)
+        ok = np.isfinite(d_r)
+        n_r = np.sqrt(1.0 + (grad_r**2).sum(1))
+        gap[fix] = np.where(ok, (-d_r - p[fix, 2]) / n_r, gap[fix])
+        normal[fix] = np.where(ok[:, None], np.column_stack([-grad_r, -np.ones(len(d_r))])
+                               / n_r[:, None], normal[fix])
+        d = d.copy()
+        d[fix] = np.where(ok, d_r, d[fix])
+    through_side = ~beside & side_flag & (gap < 0) & (-sd < -gap)
+    k = np.flatnonzero(beside | through_side)
+    side = beside.copy()
+    if len(k) == 0:
+        return (gap, normal, side) if with_side else (gap, normal)
+    s_k, a_k = np.maximum(sd[k], 0.0), away[k]
+    dz = p[k, 2] + d[k]  # height above the rim (-inf where the face is unknown)
+    below = beside[k] & np.isfinite(dz) & (dz < 0)
+    dist = np.hypot(s_k, np.where(below, dz, 0.0))
+    n_rim = np.column_stack([s_k[:, None] * a_k, np.where(below, dz, 0.0)])
+    n_rim = np.where((dist > 1e-12)[:, None], n_rim / np.maximum(dist, 1e-300)[:, None],
+                     np.array([[0.0, 0.0, -1.0]]))
+    wall = ~below
+    gap[k] = np.where(below, dist, sd[k])
+    normal[k] = np.where(below[:, None], n_rim, np.column_stack([a_k, np.zeros(len(k))]))
+    side[k] |= wall
+    return (gap, normal, side) if with_side else (gap, normal)
 
 
 def footprint(field_: IntrusionField, geometry: PadGeometry, pitch_mm: float = 0.05,
@@ -280,9 +363,11 @@ class TruthSolver:
         ring = tip + probe * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
         sharp = float(field_(tip[None])[0] - np.mean(field_(ring))) > 0.3 * probe
         spots = [(float(tip[0]), float(tip[1]), 0.25 * h_fine_mm)] if sharp else []
+        sizes = np.concatenate([curvature_sizes(field_, pts, h_fine_mm),
+                                rim_sizes(field_, pts, h_fine_mm)])
         mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
                                 surface_nodes_xy=tip[None], point_sizes=spots,
-                                curvature_sizes=curvature_sizes(field_, pts, h_fine_mm))
+                                curvature_sizes=sizes)
         return mesh, h_fine_mm, pts
 
     def solve(self, indenter, pose, **kwargs) -> TruthSolution:
@@ -331,6 +416,33 @@ def curvature_sizes(field_: IntrusionField, fp: np.ndarray, h_fine_mm: float,
     need = size < h_fine_mm
     size = np.maximum(size[need], H_FINE_MIN_MM)
     return np.column_stack([fp[need], size])
+
+
+def rim_sizes(field_: IntrusionField, fp: np.ndarray, h_fine_mm: float,
+              pitch_mm: float = 0.05) -> np.ndarray:
+    """Edge lengths along the rim of a flat-faced indenter (a punch): (k, 3) rows (x, y, size
+    mm) at the footprint points ``fp`` (k0, 2) (a ``pitch_mm`` grid) next to a point the
+    indenter does not cover while it reaches more than :data:`RIM_WALL_MM` below the rest
+    surface there (a wall, not the gentle edge of a curved contact). The gel folds around the
+    rim (strains are singular at its corners): edges there are a third of the fine spacing, a
+    sixth at the outline's corners (where less than 45 % of a disc of 2 pitches around the
+    point is covered), at least :data:`H_FINE_MIN_MM`."""
+    if len(fp) == 0 or field_.coverage is None:
+        return np.zeros((0, 3))
+    d0 = field_(fp)
+    wall = d0 > RIM_WALL_MM
+    offsets = pitch_mm * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], float)
+    edge = np.zeros(len(fp), bool)
+    for o in offsets:
+        edge |= ~np.isfinite(field_(fp + o))
+    rim = fp[wall & edge]
+    if len(rim) == 0:
+        return np.zeros((0, 3))
+    ang = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+    ring = 2 * pitch_mm * np.stack([np.cos(ang), np.sin(ang)], 1)
+    covered = np.mean([np.isfinite(field_(rim + o)) for o in ring], axis=0)
+    size = np.where(covered < 0.45, h_fine_mm / 6.0, h_fine_mm / 3.0)
+    return np.column_stack([rim, np.maximum(size, H_FINE_MIN_MM)])
 
 
 def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,
@@ -463,6 +575,8 @@ class _Solve:
         self.lift = 0.0  # the indenter raised by this much (mm) during load steps
         self.factorizations = 0
         self.newton_steps = 0
+        self.load_splits = 0
+        self.beside = np.zeros(len(self.cand_nodes), bool)
         self._cand_index = -np.ones(mesh.n_nodes, np.int64)
         self._cand_index[self.cand_nodes] = np.arange(len(self.cand_nodes))
         self._init_dof_layout()
@@ -500,15 +614,13 @@ class _Solve:
         X = self.mesh.vertices
         nodes = self.cand_nodes
         p = X[nodes] + u[nodes]
-        xy = p[:, :2] if self.geometric else X[nodes, :2]
-        d, grad = self.field.with_gradient(xy)
-        d = d - self.lift
-        covered = np.isfinite(d)
-        gap_n = np.where(covered, -d - p[:, 2], np.inf)
         w_n = np.zeros((len(nodes), 3, 3))
-        w_n[:, 0, 2] = -1.0
         if self.geometric:
-            w_n[:, 0, :2] = -grad
+            gap_n, w_n[:, 0] = self.node_gaps(p)
+        else:
+            d = self.field(X[nodes, :2]) - self.lift
+            gap_n = np.where(np.isfinite(d), -d - p[:, 2], np.inf)
+            w_n[:, 0, 2] = -1.0
         nodes_n = np.stack([nodes, nodes, nodes], 1)
         share_n = np.array([[1.0, 0.0, 0.0]]).repeat(len(nodes), 0)
         # Indenter points against the gel's current surface.
@@ -540,17 +652,39 @@ class _Solve:
         )
 
     # -------------------------------------------------------------------------- pieces
+    def node_gaps(self, p: np.ndarray):
+        """Gap (k,) mm and unit normal (k, 3) of deformed sensing-node positions p (k, 3)
+        against the indenter at its current height (:func:`solid_gap`)."""
+        return solid_gap(self.field, p - np.array([0.0, 0.0, self.lift]), self.beside)
+
+    def at_rim(self, u: np.ndarray) -> np.ndarray:
+        """Candidate nodes (nc,) bool within a rim element (:func:`rim_sizes`) of a wall's
+        outline (a punch's sharp edge), at their current position. They carry no friction:
+        at a sharp edge the normal is a cone, not a direction, and the gel slides round it
+        (held there, the elements beside it fold over)."""
+        nodes = self.cand_nodes
+        if self.field.coverage is None or self.friction == "frictionless":
+            return np.zeros(len(nodes), bool)
+        xy = self.mesh.vertices[nodes, :2] + (u[nodes, :2] if self.geometric else 0.0)
+        sd, _ = self.field.coverage(xy)
+        return sd > -self.h_fine / 3.0
+
+    def note_beside(self, u: np.ndarray) -> None:
+        """Flag the candidate nodes that are now beside the indenter (outside its outline, or
+        against its wall): if one is inside the solid after the next step, it came in through
+        the side."""
+        nodes = self.cand_nodes
+        p = self.mesh.vertices[nodes] + u[nodes] - np.array([0.0, 0.0, self.lift])
+        self.beside = solid_gap(self.field, p, self.beside, with_side=True)[2]
+
     def indenter_normals(self, u: np.ndarray) -> np.ndarray:
-        """Unit normal of the indenter (pointing into the gel, -z side) at each sensing node."""
-        X = self.mesh.vertices[: self.n_plane]
+        """Unit normal of the indenter (pointing into the gel) at each sensing node: the
+        gradient of the node's gap (-z in the small-strain limit)."""
         n = np.zeros((self.n_plane, 3))
         n[:, 2] = -1.0
         if self.geometric:
             nodes = self.cand_nodes
-            xy = X[nodes, :2] + u[nodes, :2]
-            d, grad = self.field.with_gradient(xy)
-            v = np.column_stack([-grad, -np.ones(len(nodes))])
-            n[nodes] = v / np.linalg.norm(v, axis=1, keepdims=True)
+            n[nodes] = self.node_gaps(self.mesh.vertices[nodes] + u[nodes])[1]
         return n
 
     def friction_bound(self, fn: np.ndarray) -> np.ndarray:
@@ -641,10 +775,29 @@ class _Solve:
         history = []
         state = None
         self.slide = 0.0 * slide
-        for k in range(1, n_steps + 1):
-            self.lift = depth * (1.0 - k / n_steps)
-            u, state = self._solve_step(u, depth, history, state,
-                                        final=k == n_steps and n_slide == 0)
+        # Depth increments; one whose Newton steps fail (elements fold, sets cycle) is tried
+        # again as two halves, from the last converged step (at most ``max_load_splits``).
+        lifts = [depth * (1.0 - k / n_steps) for k in range(1, n_steps + 1)]
+        done_lift, splits, i = depth, 0, 0
+        while i < len(lifts):
+            saved = (u.copy(), None if state is None else
+                     {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()},
+                     self.beside.copy())
+            self.lift = lifts[i]
+            try:
+                u, state = self._solve_step(u, depth, history, state,
+                                            final=i == len(lifts) - 1 and n_slide == 0)
+            except TruthSolveError as err:
+                if splits >= st.max_load_splits or not self.geometric:
+                    raise
+                log.debug("depth increment to %.4f mm failed (%s): halved", lifts[i], err)
+                u, state, self.beside = saved
+                lifts.insert(i, 0.5 * (done_lift + lifts[i]))
+                splits += 1
+                self.load_splits = splits
+                continue
+            done_lift = lifts[i]
+            i += 1
         for k in range(1, n_slide + 1):
             self.slide = slide * (k / n_slide)
             u, state = self._solve_step(u, depth, history, state, final=k == n_slide)
@@ -676,16 +829,23 @@ class _Solve:
             state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
             state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
         prev_step = np.inf
+        cut_steps = 0  # consecutive steps cut short because a full one inverts elements
         contraction = np.inf  # last step / the one before
         # Anti-cycling: the (active, stick) sets seen in this load step, and the nodes that may
         # no longer stick (a rim node whose normal force is ~0 can cycle active-slipping ->
         # sticking (tensile) -> released (penetrating) -> active-slipping; it then carries no
         # friction, its bound mu t_N being ~0).
+        # A node that still enters and leaves contact once it has lost its friction (at a
+        # punch's rim: held, it pulls slightly; released, it penetrates slightly) is kept in
+        # contact for the rest of the load step; its small tensile force is reported.
         seen = set()
-        no_stick = np.zeros(nc, bool)
+        no_stick = self.at_rim(u)
+        kept = np.zeros(nc, bool)
         mixing = []  # (slip forces in, slip forces out) of the steps since the sets settled
         for it in range(1, st.max_iterations + 1):
             self.newton_steps += 1
+            if self.geometric:
+                self.note_beside(u)
             c = self.constraints(u)
             normals = self.indenter_normals(u)[self.cand_nodes]
             act_n, act_p, stick = state["active_n"], state["active_p"], state["stick"] & state["active_n"]
@@ -765,6 +925,10 @@ class _Solve:
                 t *= 0.5
                 if t < 1e-4:
                     raise TruthSolveError("every step inverts elements of the truth mesh")
+            cut_steps = cut_steps + 1 if t <= 1.0 / 32.0 else 0
+            if cut_steps >= 3:
+                raise TruthSolveError("elements of the truth mesh fold: three steps in a row "
+                                      "cut to 1/32 or less")
             u = u + t * dU
             # ---- new active, stick and slip sets (complementarity functions)
             c = self.constraints(u)
@@ -785,6 +949,8 @@ class _Solve:
             new_stick = new_n & (nt <= bound) & (bound > 0) & ~no_stick
             key = (new_n.tobytes(), new_p.tobytes(), new_stick.tobytes())
             if key in seen:  # a cycle: the nodes that just changed their sets stop sticking
+                kept |= (new_n != act_n) & no_stick
+                new_n |= kept
                 no_stick |= (new_n != act_n) | (new_stick != stick)
                 new_stick &= ~no_stick
             seen.add(key)
@@ -812,7 +978,7 @@ class _Solve:
                       slip_change)
             state.update(lam_n=lam_n, lam_p=lam_p, active_n=new_n, active_p=new_p,
                          stick=new_stick, f_slip=f_slip, f_node=np.where(new_n[:, None], f_T, 0.0),
-                         no_stick=no_stick.copy())
+                         no_stick=no_stick.copy(), kept=kept.copy())
             # The small-strain model's equations and constraints are linear in u: a step taken
             # with the active, stick and slip sets that it then reproduces is the exact
             # solution (one more step would only measure the factorisation's round-off).
@@ -833,7 +999,10 @@ class _Solve:
         c = self.constraints(u)
         normals = self.indenter_normals(u)
         # Active sets are final: a multiplier is > c g, with |g| at round-off (clipped at 0).
-        lam_n = np.where(state["active_n"], np.maximum(state["lam_n"], 0.0), 0.0)
+        # (a node kept in contact against cycling may pull slightly: its force is kept)
+        kept = state.get("kept", np.zeros(nc, bool))
+        lam_n = np.where(state["active_n"], np.where(kept, state["lam_n"],
+                                                     np.maximum(state["lam_n"], 0.0)), 0.0)
         forces = np.zeros((n_plane, 3))
         nodes = self.cand_nodes
         forces[nodes] = lam_n[:, None] * normals[nodes] + state["f_node"]
@@ -862,6 +1031,7 @@ class _Solve:
             iterations=self.newton_steps,
             info={"history": history, "n_nodes": self.mesh.n_nodes,
                   "factorizations": self.factorizations,
+                  "load_splits": self.load_splits,
                   "newton_steps": self.newton_steps,
                   "n_constraints": len(c.gap), "h_fine_mm": self.h_fine,
                   # complementarity, per constraint: a sensing node's own normal force (N) and
@@ -871,7 +1041,11 @@ class _Solve:
                   # normal force is ~0; reported as slipping)
                   "frictionless_nodes": nodes[state.get("no_stick", np.zeros(nc, bool))
                                               & state["active_n"]],
-                  "point_force_n": np.asarray(lam_p, float).copy()},
+                  "point_force_n": np.asarray(lam_p, float).copy(),
+                  # sensing nodes kept in contact against cycling, and the largest tensile
+                  # force among them (N; 0 when none pulls)
+                  "kept_nodes": nodes[kept & state["active_n"]],
+                  "kept_tension_n": float(max(0.0, -lam_n[kept].min(initial=0.0)))},
         )
 
 

@@ -143,6 +143,53 @@ class EnvelopeGrid:
         e = top * (1.0 - fy) + bottom * fy
         return np.where(inside & (e <= self.max_relief_mm), e, np.inf)
 
+    def coverage_distance_mm(self, q_xy_mm):
+        """Signed distance (indenter frame, mm) from points q (k, 2) to the outline of the
+        region the envelope covers, negative inside, and its unit gradient (k, 2) (pointing
+        away from the region).
+
+        The covered pixels' outline is a staircase of ``pitch_mm`` steps; the indenter's true
+        outline (a punch's straight rim) runs through it. The distance is taken to the
+        straight-edged outline the staircase samples: the signed distance between covered and
+        uncovered pixel centres (Euclidean distance transform), smoothed over one pixel,
+        interpolated bilinearly (value and gradient). Within half a pixel of the staircase;
+        saturates 8 pixels away from it."""
+        sdf, gx, gy = self._coverage_field()
+        q = np.asarray(q_xy_mm, dtype=np.float64).reshape(-1, 2)
+        u = np.clip((q[:, 0] - self.x0_mm) / self.pitch_mm, 0.0, self.nx - 1.0)
+        v = np.clip((q[:, 1] - self.y0_mm) / self.pitch_mm, 0.0, self.ny - 1.0)
+        i = np.minimum(np.floor(u), self.nx - 2).astype(np.intp)
+        j = np.minimum(np.floor(v), self.ny - 2).astype(np.intp)
+        fx, fy = u - i, v - j
+
+        def interp(a):
+            return ((a[j, i] * (1 - fx) + a[j, i + 1] * fx) * (1 - fy)
+                    + (a[j + 1, i] * (1 - fx) + a[j + 1, i + 1] * fx) * fy)
+
+        # beyond the grid the distance keeps growing with the distance to it
+        dist = interp(sdf) + np.hypot(u - (q[:, 0] - self.x0_mm) / self.pitch_mm,
+                                      v - (q[:, 1] - self.y0_mm) / self.pitch_mm) * self.pitch_mm
+        g = np.stack([interp(gx), interp(gy)], axis=1)
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        g = np.where(norm > 1e-12, g / np.maximum(norm, 1e-300), np.array([[1.0, 0.0]]))
+        return dist, g
+
+    def _coverage_field(self):
+        cached = self.__dict__.get("_coverage")
+        if cached is None:
+            from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+            finite = np.isfinite(self.heights_mm)
+            reach = 8.0
+            outside = np.minimum(distance_transform_edt(~finite), reach + 0.5)
+            inside = np.minimum(distance_transform_edt(finite), reach + 0.5)
+            sdf = np.where(finite, 0.5 - inside, outside - 0.5)
+            sdf = gaussian_filter(sdf, 1.0, mode="nearest") * self.pitch_mm
+            gy, gx = np.gradient(sdf, self.pitch_mm)
+            cached = (sdf, gx, gy)
+            object.__setattr__(self, "_coverage", cached)
+        return cached
+
 
 def default_cache_dir() -> Path | None:
     """Folder of the on-disk envelope cache: ``$TACTILE_DEPLOY_CACHE_DIR/indenters`` when that
@@ -273,6 +320,20 @@ class Indenter:
 
     def _envelope_unchecked(self, q: np.ndarray) -> np.ndarray:
         return self.envelope_grid().sample_mm(q)
+
+    def coverage_distance_mm(self, points_xy_sensor_mm, pose: ContactPose):
+        """Where the pressing surface ends: signed distance (k,) mm from sensor-frame points
+        (k, 2) mm to the edge of the region the indenter covers (where ``intrusion_mm`` is
+        finite; negative inside), and its gradient (k, 2), the unit direction away from that
+        region, sensor frame. Above a punch's rim the indenter's side rises as a wall along
+        this edge."""
+        q = sensor_to_indenter_xy(_check_points(points_xy_sensor_mm, "points_xy_sensor_mm"), pose)
+        d, g = self._coverage_unchecked(q)
+        c, s = math.cos(math.radians(pose.theta_deg)), math.sin(math.radians(pose.theta_deg))
+        return d, np.stack([c * g[:, 0] - s * g[:, 1], s * g[:, 0] + c * g[:, 1]], axis=1)
+
+    def _coverage_unchecked(self, q: np.ndarray):
+        return self.envelope_grid().coverage_distance_mm(q)
 
     @property
     def footprint_radius_mm(self) -> float:
@@ -412,6 +473,11 @@ class AnalyticIndenter(Indenter):
 
     def _compute_footprint_radius(self) -> float:
         return self._footprint_radius_exact()
+
+    def _coverage_unchecked(self, q: np.ndarray):
+        r = np.hypot(q[:, 0], q[:, 1])
+        g = np.where(r[:, None] > 0, q / np.maximum(r, 1e-300)[:, None], np.array([[1.0, 0.0]]))
+        return r - self._footprint_radius_exact(), g
 
     def _load_or_build_grid(self) -> EnvelopeGrid:
         r = self._footprint_radius_exact()
