@@ -103,6 +103,10 @@ def _largest(values) -> str:
     return f"{max(finite):.3f}" if finite else "n/a"
 
 
+def _splits(n: int) -> str:
+    return "" if not n else f" ({n} split{'s' if n > 1 else ''})"
+
+
 def markdown(result: dict) -> str:
     import numpy as np
 
@@ -139,8 +143,7 @@ def markdown(result: dict) -> str:
         for label in labels:
             x = result["settings"][label]["rows"][k]
             cells.append("not converged" if x["failed"] else
-                         f"{x['seconds']:.1f}" + (f" ({x.get('load_splits', 0)} splits)"
-                                                  if x.get("load_splits", 0) else ""))
+                         f"{x['seconds']:.1f}" + _splits(x.get("load_splits", 0)))
         lines.append(f"| {row['name']} {row['depth']:.2f} mm | " + " | ".join(cells) + " |")
     lines += ["", "The surface check reads the gel's piecewise-linear surface under a 20 um grid "
               "over the footprint: at a punch's sharp rim the one triangle spanning the rim "
