@@ -74,6 +74,9 @@ RIM_PROBE_MM = 0.04
 #: An indenter's outline is a wall (a punch's side) where its face there reaches this far
 #: (mm) below the rest surface.
 RIM_WALL_MM = 0.02
+#: Edge length along such a rim, as a fraction of the fine spacing (half of it at the
+#: outline's corners); nodes within one such edge of the rim carry no friction.
+RIM_SPACING_FRACTION = 1.0 / 3.0
 
 
 class TruthSolveError(RuntimeError):
@@ -441,7 +444,7 @@ def rim_sizes(field_: IntrusionField, fp: np.ndarray, h_fine_mm: float,
     ang = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
     ring = 2 * pitch_mm * np.stack([np.cos(ang), np.sin(ang)], 1)
     covered = np.mean([np.isfinite(field_(rim + o)) for o in ring], axis=0)
-    size = np.where(covered < 0.45, h_fine_mm / 6.0, h_fine_mm / 3.0)
+    size = RIM_SPACING_FRACTION * h_fine_mm * np.where(covered < 0.45, 0.5, 1.0)
     return np.column_stack([rim, np.maximum(size, H_FINE_MIN_MM)])
 
 
@@ -667,7 +670,7 @@ class _Solve:
             return np.zeros(len(nodes), bool)
         xy = self.mesh.vertices[nodes, :2] + (u[nodes, :2] if self.geometric else 0.0)
         sd, _ = self.field.coverage(xy)
-        return sd > -self.h_fine / 3.0
+        return sd > -RIM_SPACING_FRACTION * self.h_fine
 
     def note_beside(self, u: np.ndarray) -> None:
         """Flag the candidate nodes that are now beside the indenter (outside its outline, or
