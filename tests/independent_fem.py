@@ -1,11 +1,12 @@
-"""A rigid sphere pressed into a bonded neo-Hookean layer, solved with scikit-fem.
+"""A rigid sphere or a rigid flat punch pressed into a bonded neo-Hookean layer, solved with
+scikit-fem.
 
 An independent reference for the resolved contact solver: it imports numpy, scipy and
 scikit-fem only (nothing of ``tactile_deploy``; a test checks that), and is written from the
 textbook statement of the problem, not from the product's solver.
 
 Problem (axisymmetric; cylindrical frame (r, z) in mm, z = 0 the layer's rest top surface,
-z < 0 inside the layer, the sphere's axis at r = 0):
+z < 0 inside the layer, the indenter's axis at r = 0):
 
 * a cylindrical layer ``0 <= r <= radius_mm``, ``-thickness_mm <= z <= 0``; its bottom bonded
   (u = 0), its lateral side and top free, u_r = 0 on the axis;
@@ -19,20 +20,24 @@ z < 0 inside the layer, the sphere's axis at r = 0):
       F = [[1 + du_r/dr, du_r/dz, 0], [du_z/dr, 1 + du_z/dz, 0], [0, 0, (r + u_r) / r]]
 
   and total energy ``Pi(u) = integral W(F) 2 pi r dr dz`` (N mm);
-* a rigid frictionless sphere of radius R whose lowest point is at z = -depth: its lower
-  surface ``z_s(rho) = R - depth - sqrt(R^2 - rho^2)``. Contact in the current
-  configuration: every top-surface node at current position (rho, z) = (r + u_r, u_z) keeps
-  the vertical gap ``g = z_s(rho) - z >= 0`` (its gradient is along the sphere's normal, so the
-  contact force is normal to the sphere: frictionless);
+* :func:`press_sphere`: a rigid frictionless sphere of radius R whose lowest point is at
+  z = -depth: its lower surface ``z_s(rho) = R - depth - sqrt(R^2 - rho^2)``. Contact in the
+  current configuration: every top-surface node at current position (rho, z) = (r + u_r, u_z)
+  keeps the vertical gap ``g = z_s(rho) - z >= 0`` (its gradient is along the sphere's normal,
+  so the contact force is normal to the sphere: frictionless);
+* :func:`press_punch`: a rigid frictionless circular flat punch of radius a (sharp rim,
+  vertical side), its face at z = -depth: every top-surface node stays outside the solid
+  rho < a, z > -depth (its face and its side; see there);
 * discretisation: quadratic (P2) triangles on a tensor mesh graded towards the contact (the
-  axis and the top surface), 4th-order quadrature;
+  sphere: the axis and the top surface; the punch: the rim's corner r = a, z = 0), 4th-order
+  quadrature;
 * solution: depth raised in equal load steps (each started from the previous increment);
   at each step Newton's method on the Lagrangian with a primal-dual active set (active where
   ``lambda - g > 0``; the active constraints hold in linearised form, the nodal contact forces
   lambda are unknowns of the saddle-point system, the gap's curvature is in the tangent),
-  until the active set no longer changes and the Newton step is below 1e-10 mm. Checked at
-  the end: the bonded bottom's reaction equals the contact force (to 1e-6), no contact force
-  is tensile, no element is inverted.
+  until the active set no longer changes and the Newton step is below the tolerance (mm).
+  Checked at the end: the bonded bottom's reaction equals the contact force (to 1e-6), no
+  contact force is tensile, no element is inverted.
 
 Returns the total force (N, the indenter pushing the layer along -z) and the deformed top
 surface (current r and z of its nodes, mm).
@@ -153,10 +158,11 @@ def _residual_form(v, w):
 class Layer:
     """The discretised layer: mesh, P2 basis, boundary conditions, top-surface nodes."""
 
-    def __init__(self, radius_mm: float, thickness_mm: float, E_mpa: float, nu: float,
-                 h_fine_mm: float, fine_r_mm: float, fine_depth_mm: float, growth: float = 1.15):
-        rs = graded(h_fine_mm, fine_r_mm, radius_mm, growth)
-        zs = -graded(h_fine_mm, fine_depth_mm, thickness_mm, growth)[::-1]
+    def __init__(self, rs: np.ndarray, zs: np.ndarray, E_mpa: float, nu: float):
+        """``rs`` (m,) radial grid lines 0 .. the layer's radius, ``zs`` (n,) vertical ones
+        -thickness .. 0 (mm, increasing); the mesh is their tensor product, each rectangle
+        cut into two triangles."""
+        thickness_mm = -float(zs[0])
         self.mesh = MeshTri.init_tensor(rs, zs)
         self.basis = Basis(self.mesh, ElementVector(ElementTriP2()), intorder=4)
         lam, self.mu = _lame(E_mpa, nu)
@@ -205,40 +211,68 @@ def press_sphere(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float
     Contact at the top-surface nodes: the nodal force lambda (N, >= 0) of each active node and
     its linearised gap enter the saddle-point system; the active set is re-chosen after every
     Newton step from ``lambda - g > 0`` (primal-dual active set)."""
-    lay = Layer(radius_mm, thickness_mm, E_mpa, nu, h_fine_mm, fine_r_mm, fine_depth_mm, growth)
+    rs = graded(h_fine_mm, fine_r_mm, radius_mm, growth)
+    zs = -graded(h_fine_mm, fine_depth_mm, thickness_mm, growth)[::-1]
+    lay = Layer(rs, zs, E_mpa, nu)
     R = sphere_radius_mm
-    free = lay.free
-    u = np.zeros(lay.n)
-    lam = np.zeros(len(lay.top_r))
-    newton = 0
 
-    def gap(u, depth):
+    def gap(u, depth, u_start):
         rho = lay.top_rest_r + u[lay.top_r]
         inside = rho < R
         root = np.sqrt(np.where(inside, R * R - rho * rho, 1.0))
         # beyond the equator (never reached by a converged surface) the gap continues at the
         # equator's height, so that it stays continuous
         zs = np.where(inside, R - depth - root, R - depth)
-        return (zs - u[lay.top_z], np.where(inside, rho / root, 0.0),
+        return (zs - u[lay.top_z], np.where(inside, rho / root, 0.0), -np.ones_like(rho),
                 np.where(inside, R * R / root**3, 0.0))
 
+    u, lam, _, newton, g = _press(lay, gap, depth_mm, steps, tol_mm, "sphere on layer")
+    rho = lay.top_rest_r + u[lay.top_r]
+    return SphereOnLayer(
+        force_n=float(lam.sum()),
+        profile_r_mm=rho,
+        profile_z_mm=u[lay.top_z],
+        contact_radius_mm=float(rho[lam > 0].max()),
+        n_dofs=lay.n,
+        newton_steps=newton,
+        max_penetration_mm=float(max(-g.min(), 0.0)),
+    )
+
+
+def _press(lay: Layer, gap, depth_mm: float, steps: int, tol_mm: float, label: str):
+    """Raise the indenter's depth to ``depth_mm`` in ``steps`` equal load steps; at each,
+    Newton's method with a primal-dual active set on the top-surface nodes.
+
+    ``gap(u, depth, u_start)`` -> (g, dg/du_r, dg/du_z, d2g/du_r2), each (k,) over the
+    top-surface nodes: the gap (mm, >= 0 outside the indenter) and its derivatives along the
+    node's displacement; ``u_start`` is the solution of the load step before (zero at the
+    first), which tells a punch which way a node inside it came in. Returns (u (n,) mm, the nodal contact forces lambda (k,) N along the gap's
+    gradient, their vertical part (k,) N (the force on the layer along -z), Newton steps, the
+    final gap (k,) mm), after checking
+    that the bonded bottom's reaction equals the contact force (to 1e-6), that no contact
+    force is tensile and that no element is inverted."""
+    free = lay.free
+    u = np.zeros(lay.n)
+    lam = np.zeros(len(lay.top_r))
+    newton = 0
     u_prev = u.copy()
     for step in range(1, steps + 1):
         depth = depth_mm * step / steps
+        u_start = u
         u, u_prev = 2 * u - u_prev, u  # predictor: the previous increment again
-        g, _, _ = gap(u, depth)
+        g = gap(u, depth, u_start)[0]
         active = (lam - g) > 0
         for it in range(100):
             newton += 1
             f, K = lay.forces_and_tangent(u)
-            g, slope, curv = gap(u, depth)
+            g, slope, slope_z, curv = gap(u, depth, u_start)
             idx = np.flatnonzero(active)
             na = len(idx)
             # tangent of f - C' lam: the gap's curvature along u_r of the active nodes
             diag = np.zeros(lay.n)
             diag[lay.top_r[idx]] = lam[idx] * curv[idx]
             Kt = (K - sp.diags(diag)).tocsr()[free][:, free]
-            C = sp.csr_matrix((np.concatenate([slope[idx], -np.ones(na)]),
+            C = sp.csr_matrix((np.concatenate([slope[idx], slope_z[idx]]),
                                (np.tile(np.arange(na), 2),
                                 np.concatenate([lay.top_r[idx], lay.top_z[idx]]))),
                               shape=(na, lay.n))
@@ -251,7 +285,7 @@ def press_sphere(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float
             u = u + du
             new_lam = np.zeros_like(lam)
             new_lam[idx] = lam[idx] + sol[len(free):]
-            g, _, _ = gap(u, depth)
+            g = gap(u, depth, u_start)[0]
             new_active = (new_lam - g) > 0
             lam = np.where(new_active, np.maximum(new_lam, 0.0), 0.0)
             if np.array_equal(new_active, active) and np.abs(du).max() < tol_mm:
@@ -259,27 +293,126 @@ def press_sphere(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float
                 break
             active = new_active
         else:
-            raise RuntimeError(f"sphere on layer: Newton did not converge at depth {depth} mm "
+            raise RuntimeError(f"{label}: Newton did not converge at depth {depth} mm "
                                f"(last step {np.abs(du).max():.3e} mm)")
-    # final figures and checks
     f, _ = lay.forces_and_tangent(u, tangent=False)
-    g, slope, _ = gap(u, depth_mm)
-    force = float(lam.sum())  # each multiplier pushes its node along -z (dg/du_z = -1)
+    g, _, slope_z, _ = gap(u, depth_mm, u_start)
+    vertical = -lam * slope_z  # the contact forces' part along -z (N)
+    force = float(vertical.sum())
     bottom_z = np.setdiff1d(lay.basis.split_indices()[1], free)
     reaction = float(f[bottom_z].sum())  # internal force at the bonded bottom, +z
     if abs(reaction - force) > 1e-6 * force:
-        raise RuntimeError(f"sphere on layer: contact force {force:.9g} N but bottom reaction "
+        raise RuntimeError(f"{label}: contact force {force:.9g} N but bottom reaction "
                            f"{reaction:.9g} N")
     if lay.min_jacobian(u) <= 0:
-        raise RuntimeError(f"sphere on layer: inverted element (J {lay.min_jacobian(u):.3e})")
+        raise RuntimeError(f"{label}: inverted element (J {lay.min_jacobian(u):.3e})")
     if np.any(lam < 0):
-        raise RuntimeError(f"sphere on layer: tensile contact force {lam.min():.3e} N")
+        raise RuntimeError(f"{label}: tensile contact force {lam.min():.3e} N")
+    return u, lam, vertical, newton, g
+
+
+@dataclass
+class PunchOnLayer:
+    """Converged solution of the flat punch: force_n (N), profile_r_mm / profile_z_mm (k,)
+    current positions of the top-surface nodes sorted by rest r, contact_radius_mm (largest
+    current r of a node in contact with the face), rim_gap_mm (height above the face of the
+    first node beyond the rim, mm), side_nodes (nodes pressed against the punch's side),
+    n_dofs, newton_steps, max_penetration_mm (largest nodal penetration of the punch)."""
+
+    force_n: float
+    profile_r_mm: np.ndarray
+    profile_z_mm: np.ndarray
+    contact_radius_mm: float
+    rim_gap_mm: float
+    side_nodes: int
+    n_dofs: int
+    newton_steps: int
+    max_penetration_mm: float
+
+
+def graded_about(centre: float, h_min: float, growth: float, length: float,
+                 h_max: float) -> np.ndarray:
+    """Grid lines 0 .. length (mm) with one at ``centre`` (0 <= centre < length): spacing
+    ``h_min`` on either side of it, growing by ``growth`` per cell away from it up to
+    ``h_max``; the last cell on each side is stretched to land on 0 and ``length``."""
+
+    def side(extent):
+        if extent <= 0:
+            return np.zeros(1)
+        pts, h = [0.0], h_min
+        while pts[-1] < extent:
+            pts.append(pts[-1] + h)
+            h = min(h * growth, h_max)
+        pts = np.array(pts)
+        if len(pts) > 2 and extent - pts[-2] < 0.5 * (pts[-1] - pts[-2]):
+            pts = np.delete(pts, -2)  # no sliver: merge a short last cell into the one before
+        return pts * extent / pts[-1]
+
+    left = centre - side(centre)[::-1]
+    right = centre + side(length - centre)
+    return np.concatenate([left, right[1:]])
+
+
+def halved(pts: np.ndarray, times: int = 1) -> np.ndarray:
+    """The grid lines ``pts`` with every cell cut in two, ``times`` times."""
+    for _ in range(times):
+        pts = np.sort(np.concatenate([pts, 0.5 * (pts[1:] + pts[:-1])]))
+    return pts
+
+
+def punch_grid(punch_radius_mm: float, radius_mm: float, thickness_mm: float,
+               h_rim_mm: float, growth: float = 1.3, h_max_mm: float = 0.5, refine: int = 0):
+    """The tensor grid (rs, zs) of :func:`press_punch`: graded towards the rim's corner
+    (r = a, z = 0), with a grid line exactly at r = a; ``refine`` halvings of every cell."""
+    rs = graded_about(punch_radius_mm, h_rim_mm, growth, radius_mm, h_max_mm)
+    zs = -graded_about(0.0, h_rim_mm, growth, thickness_mm, h_max_mm)[::-1]
+    return halved(rs, refine), halved(zs, refine)
+
+
+def press_punch(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float = 0.3,
+                nu: float = 0.45, punch_radius_mm: float = 1.0, depth_mm: float = 0.01,
+                h_rim_mm: float = 0.002, growth: float = 1.15, h_max_mm: float = 0.5,
+                refine: int = 0, steps: int = 1, tol_mm: float = 1e-12) -> PunchOnLayer:
+    """Press a rigid frictionless circular flat punch of radius a = ``punch_radius_mm``
+    (sharp rim, vertical side) ``depth_mm`` into the layer, its axis at r = 0: the punch is
+    the solid rho < a, z > -depth.
+
+    Contact in the current configuration: every top-surface node at (rho, z) = (r + u_r, u_z)
+    stays outside that solid: outside it, ``g = max(-depth - z, rho - a) >= 0`` (under the
+    face its vertical gap, beside the side its horizontal one); inside it, ``-depth - z`` if
+    the node was under the face (rho <= a) at the end of the load step before (the punch came
+    down on it), else ``rho - a`` (it came in through the side). The gradient is the face's
+    or the side's normal: frictionless.
+    The mesh is graded towards the rim's corner, where the contact pressure is singular (as
+    1 / sqrt(a - r) in the small-strain limit), with a grid line at r = a; the force converges
+    with the smallest spacing there, ``h_rim_mm / 2**refine``."""
+    a = punch_radius_mm
+    rs, zs = punch_grid(a, radius_mm, thickness_mm, h_rim_mm, growth, h_max_mm, refine)
+    lay = Layer(rs, zs, E_mpa, nu)
+    k = len(lay.top_r)
+
+    def gap(u, depth, u_start):
+        face = -depth - u[lay.top_z]
+        side = lay.top_rest_r + u[lay.top_r] - a
+        beside = lay.top_rest_r + u_start[lay.top_r] > a
+        outside = (face > 0) | (side > 0)
+        on_side = np.where(outside, side > face, beside)
+        return (np.where(on_side, side, face), on_side.astype(float),
+                np.where(on_side, 0.0, -1.0), np.zeros(k))
+
+    u, lam, vertical, newton, g = _press(lay, gap, depth_mm, steps, tol_mm, "punch on layer")
     rho = lay.top_rest_r + u[lay.top_r]
-    return SphereOnLayer(
-        force_n=force,
+    z = u[lay.top_z]
+    beyond = np.flatnonzero(rho >= a)
+    first = beyond[np.argmin(rho[beyond])]
+    on_side = (lam > 0) & (rho - a > -depth_mm - z)
+    return PunchOnLayer(
+        force_n=float(vertical.sum()),
         profile_r_mm=rho,
-        profile_z_mm=u[lay.top_z],
-        contact_radius_mm=float(rho[lam > 0].max()),
+        profile_z_mm=z,
+        contact_radius_mm=float(rho[(lam > 0) & ~on_side].max()),
+        rim_gap_mm=float(z[first] + depth_mm),
+        side_nodes=int(on_side.sum()),
         n_dofs=lay.n,
         newton_steps=newton,
         max_penetration_mm=float(max(-g.min(), 0.0)),

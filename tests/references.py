@@ -28,6 +28,14 @@ def dimitriadis_force(E, nu, R, d, h):
     return 4 / 3 * E / (1 - nu**2) * math.sqrt(R) * d**1.5 * f
 
 
+def sneddon_punch_force(E, nu, a, d):
+    """Force (N with E in MPa and lengths in mm) of a rigid frictionless circular flat punch
+    of radius ``a`` pressed ``d`` into an elastic half-space: F = 2 a E d / (1 - nu^2)
+    (Boussinesq's flat-ended cylinder; Sneddon 1965, Int. J. Eng. Sci. 3:47). The pressure
+    under it is P / (2 pi a sqrt(a^2 - r^2)), singular at the rim."""
+    return 2.0 * a * E * d / (1.0 - nu * nu)
+
+
 def mindlin_tangential_load(E, nu, mu, P, a, delta):
     """Cattaneo-Mindlin partial slip of a rigid sphere on an elastic half-space (Johnson,
     Contact Mechanics, 1985, eqs. 7.42 and 7.40, the second body rigid): the tangential force Q
