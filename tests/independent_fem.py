@@ -216,7 +216,7 @@ def press_sphere(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float
     lay = Layer(rs, zs, E_mpa, nu)
     R = sphere_radius_mm
 
-    def gap(u, depth, u_start):
+    def gap(u, depth, u_start, depth_start):
         rho = lay.top_rest_r + u[lay.top_r]
         inside = rho < R
         root = np.sqrt(np.where(inside, R * R - rho * rho, 1.0))
@@ -243,10 +243,11 @@ def _press(lay: Layer, gap, depth_mm: float, steps: int, tol_mm: float, label: s
     """Raise the indenter's depth to ``depth_mm`` in ``steps`` equal load steps; at each,
     Newton's method with a primal-dual active set on the top-surface nodes.
 
-    ``gap(u, depth, u_start)`` -> (g, dg/du_r, dg/du_z, d2g/du_r2), each (k,) over the
-    top-surface nodes: the gap (mm, >= 0 outside the indenter) and its derivatives along the
-    node's displacement; ``u_start`` is the solution of the load step before (zero at the
-    first), which tells a punch which way a node inside it came in. Returns (u (n,) mm, the nodal contact forces lambda (k,) N along the gap's
+    ``gap(u, depth, u_start, depth_start)`` -> (g, dg/du_r, dg/du_z, d2g/du_r2), each (k,)
+    over the top-surface nodes: the gap (mm, >= 0 outside the indenter) and its derivatives
+    along the node's displacement; ``u_start`` and ``depth_start`` are the solution and the
+    depth of the load step before (zero at the first), which tell a punch which way a node
+    inside it came in. Returns (u (n,) mm, the nodal contact forces lambda (k,) N along the gap's
     gradient, their vertical part (k,) N (the force on the layer along -z), Newton steps, the
     final gap (k,) mm), after checking
     that the bonded bottom's reaction equals the contact force (to 1e-6), that no contact
@@ -258,14 +259,14 @@ def _press(lay: Layer, gap, depth_mm: float, steps: int, tol_mm: float, label: s
     u_prev = u.copy()
     for step in range(1, steps + 1):
         depth = depth_mm * step / steps
-        u_start = u
+        u_start, depth_start = u, depth_mm * (step - 1) / steps
         u, u_prev = 2 * u - u_prev, u  # predictor: the previous increment again
-        g = gap(u, depth, u_start)[0]
+        g = gap(u, depth, u_start, depth_start)[0]
         active = (lam - g) > 0
         for it in range(100):
             newton += 1
             f, K = lay.forces_and_tangent(u)
-            g, slope, slope_z, curv = gap(u, depth, u_start)
+            g, slope, slope_z, curv = gap(u, depth, u_start, depth_start)
             idx = np.flatnonzero(active)
             na = len(idx)
             # tangent of f - C' lam: the gap's curvature along u_r of the active nodes
@@ -285,7 +286,7 @@ def _press(lay: Layer, gap, depth_mm: float, steps: int, tol_mm: float, label: s
             u = u + du
             new_lam = np.zeros_like(lam)
             new_lam[idx] = lam[idx] + sol[len(free):]
-            g = gap(u, depth, u_start)[0]
+            g = gap(u, depth, u_start, depth_start)[0]
             new_active = (new_lam - g) > 0
             lam = np.where(new_active, np.maximum(new_lam, 0.0), 0.0)
             if np.array_equal(new_active, active) and np.abs(du).max() < tol_mm:
@@ -296,7 +297,7 @@ def _press(lay: Layer, gap, depth_mm: float, steps: int, tol_mm: float, label: s
             raise RuntimeError(f"{label}: Newton did not converge at depth {depth} mm "
                                f"(last step {np.abs(du).max():.3e} mm)")
     f, _ = lay.forces_and_tangent(u, tangent=False)
-    g, _, slope_z, _ = gap(u, depth_mm, u_start)
+    g, _, slope_z, _ = gap(u, depth_mm, u_start, depth_start)
     vertical = -lam * slope_z  # the contact forces' part along -z (N)
     force = float(vertical.sum())
     bottom_z = np.setdiff1d(lay.basis.split_indices()[1], free)
@@ -379,9 +380,10 @@ def press_punch(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float 
 
     Contact in the current configuration: every top-surface node at (rho, z) = (r + u_r, u_z)
     stays outside that solid: outside it, ``g = max(-depth - z, rho - a) >= 0`` (under the
-    face its vertical gap, beside the side its horizontal one); inside it, ``-depth - z`` if
-    the node was under the face (rho <= a) at the end of the load step before (the punch came
-    down on it), else ``rho - a`` (it came in through the side). The gradient is the face's
+    face its vertical gap, beside the side its horizontal one); inside it, the one of the two
+    that was the larger at the end of the load step before: ``-depth - z`` if the node was
+    under the face (the punch came down on it; a node at the rim's corner too), else
+    ``rho - a`` (it came in through the side). The gradient is the face's
     or the side's normal: frictionless.
     The mesh is graded towards the rim's corner, where the contact pressure is singular (as
     1 / sqrt(a - r) in the small-strain limit), with a grid line at r = a; the force converges
@@ -391,10 +393,10 @@ def press_punch(radius_mm: float = 8.0, thickness_mm: float = 3.0, E_mpa: float 
     lay = Layer(rs, zs, E_mpa, nu)
     k = len(lay.top_r)
 
-    def gap(u, depth, u_start):
+    def gap(u, depth, u_start, depth_start):
         face = -depth - u[lay.top_z]
         side = lay.top_rest_r + u[lay.top_r] - a
-        beside = lay.top_rest_r + u_start[lay.top_r] > a
+        beside = (lay.top_rest_r + u_start[lay.top_r] - a) > (-depth_start - u_start[lay.top_z])
         outside = (face > 0) | (side > 0)
         on_side = np.where(outside, side > face, beside)
         return (np.where(on_side, side, face), on_side.astype(float),

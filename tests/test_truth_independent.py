@@ -145,7 +145,7 @@ def test_sphere_at_1mm_has_the_independent_fems_force(ball_at_1mm, independent_b
 # ------------------------------------------------------------------------- circular flat punch
 PUNCH_RADIUS_MM, PUNCH_NU, PUNCH_DEPTH_MM = 1.0, 0.45, 0.01
 # Spacings at the rim's corner (mm) of the independent FEM's convergence levels.
-RIM_SPACINGS_MM = (0.004, 0.002, 0.001)
+RIM_SPACINGS_MM = (0.008, 0.004, 0.002)
 
 
 def richardson_rate_one(coarse: float, fine: float) -> float:
@@ -157,36 +157,38 @@ def richardson_rate_one(coarse: float, fine: float) -> float:
 @pytest.fixture(scope="module")
 def independent_punch():
     """The independent FEM's flat punch on the 3 mm layer of radius 8 mm (E 0.3 MPa, nu 0.45):
-    force per depth (N/mm) at each rim spacing of ``RIM_SPACINGS_MM``, pressed 1e-4 mm (the
-    small-strain limit: 0.004 % from linear) and 0.01 mm, and their limits (rate one)."""
-    out = {}
-    for key, depth in (("small", 1e-4), ("0.01", PUNCH_DEPTH_MM)):
-        stiff = [ref.press_punch(PAD_RADIUS_MM, THICKNESS_MM, E_MPA, PUNCH_NU, PUNCH_RADIUS_MM,
-                                 depth, h_rim_mm=h).force_n / depth for h in RIM_SPACINGS_MM]
-        out[key] = (stiff, richardson_rate_one(stiff[-2], stiff[-1]))
-    return out
+    force per depth (N/mm) pressed 1e-4 mm (the small-strain limit) at each rim spacing of
+    ``RIM_SPACINGS_MM`` and its limit (rate one); and the neo-Hookean force at 0.01 mm relative
+    to the small-strain one (at 0.004 mm: 0.99968; 0.99967 / 0.99966 at 0.002 / 0.001 mm)."""
+    def stiffness(depth, h):
+        return ref.press_punch(PAD_RADIUS_MM, THICKNESS_MM, E_MPA, PUNCH_NU, PUNCH_RADIUS_MM,
+                               depth, h_rim_mm=h).force_n / depth
+
+    small = [stiffness(1e-4, h) for h in RIM_SPACINGS_MM]
+    nonlinear = stiffness(PUNCH_DEPTH_MM, RIM_SPACINGS_MM[1]) / small[1]
+    return small, richardson_rate_one(small[-2], small[-1]), nonlinear
 
 
 def test_independent_punch_converges_at_rate_one_at_its_rim(independent_punch):
     """The pressure under a flat punch is singular as 1 / sqrt(a - r) at the rim; on a mesh
     graded towards the rim (growth 1.15 per cell) the force's error is proportional to the
-    smallest spacing there: each halving halves it. Measured (small strain): 1.1051964 /
-    1.1048637 / 1.1046962 N/mm at 0.004 / 0.002 / 0.001 mm (ratio of the changes 1.99; also
-    1.1046128 / 1.1045713 at 0.0005 / 0.00025: 2.01, 2.01), limit 1.1045287 N/mm (1.1045298 from
-    the two finest), 1.468 x Sneddon's half-space force (the bonded 3 mm layer, a / h = 1/3).
-    At 0.01 mm the neo-Hookean force is 0.035 % below the small-strain limit."""
-    stiff, limit = independent_punch["small"]
-    ratio = (stiff[0] - stiff[1]) / (stiff[1] - stiff[2])
-    deep, deep_limit = independent_punch["0.01"]
+    smallest spacing there: each halving halves it. Measured (small strain): 1.1058459 /
+    1.1051964 / 1.1048637 / 1.1046962 / 1.1046128 / 1.1045713 N/mm at 0.008 / 0.004 / 0.002 /
+    0.001 / 0.0005 / 0.00025 mm (ratios of the changes 1.95, 1.99, 2.01, 2.01), limit
+    1.104531 N/mm from 0.004 / 0.002 mm, 1.1045298 from the two finest: 1.468 x Sneddon's
+    half-space force (the bonded 3 mm layer, a / h = 1/3). At 0.01 mm the neo-Hookean force is
+    0.03 % below the small-strain limit."""
+    small, limit, nonlinear = independent_punch
+    ratio = (small[0] - small[1]) / (small[1] - small[2])
     half_space = sneddon_punch_force(E_MPA, PUNCH_NU, PUNCH_RADIUS_MM, 1.0)
-    print(f"small strain {[f'{k:.7f}' for k in stiff]} N/mm, ratio of changes {ratio:.3f}, "
-          f"limit {limit:.7f} N/mm ({limit / half_space:.4f} x Sneddon); 0.01 mm "
-          f"{[f'{k:.7f}' for k in deep]}, limit {deep_limit:.7f} ({deep_limit / limit:.5f})")
+    print(f"small strain {[f'{k:.7f}' for k in small]} N/mm, ratio of changes {ratio:.3f}, "
+          f"limit {limit:.7f} N/mm ({limit / half_space:.4f} x Sneddon); neo-Hookean at "
+          f"{PUNCH_DEPTH_MM} mm x{nonlinear:.5f}")
     assert 1.8 <= ratio <= 2.2
-    assert np.all(np.diff(stiff) < 0)  # from above, as a conforming displacement FEM
-    assert abs(stiff[-1] / limit - 1.0) <= 2e-4
+    assert np.all(np.diff(small) < 0)  # from above, as a conforming displacement FEM
+    assert abs(small[-1] / limit - 1.0) <= 5e-4
     assert limit > half_space  # the bonded layer is stiffer than the half-space
-    assert deep_limit / limit == pytest.approx(1.0, abs=1e-3)
+    assert nonlinear == pytest.approx(1.0, abs=1e-3)
 
 
 def test_independent_punch_has_sneddons_force_on_a_thick_layer():
@@ -211,14 +213,19 @@ def test_flat_punch_force_matches_the_independent_fem(independent_punch, model):
     """The resolved solver's flat punch (radius 1 mm, sharp rim, vertical side) pressed 0.01 mm
     into the 3 mm pad (radius 8 mm, E 0.3 MPa, nu 0.45), automatic truth mesh (fine spacing
     0.1 mm), against the independent FEM's extrapolated force (linear: its small-strain limit;
-    neo-Hookean: at 0.01 mm; uncertain by 0.05 %: finer than 0.001 mm at the rim, the gel
-    beside the rim meets the punch's side and the force moves by that much).
+    neo-Hookean: that times its neo-Hookean factor at 0.01 mm; uncertain by 0.05 %: finer than
+    0.001 mm at the rim the gel beside the rim meets the punch's side, and the force moves by
+    that much).
 
     Measured: linear 0.0109753 N vs 0.0110453 N (x0.9937), neo-Hookean 0.0109799 N vs
-    0.0110414 N (x0.9944). The truth force scatters by +-0.7 % from mesh to mesh (nodes fall
-    anywhere within a spacing of the rim, and the force is proportional to the contact's
-    radius): fine spacing 0.2 / 0.1 / 0.05 / 0.035 mm: x0.973 / 0.994 / 1.002 / 1.005, the
-    bulk capped at 0.5 mm: x1.000 (0.1 mm), x0.998 (0.05 mm). Allowed: 1 %."""
+    0.0110418 N (x0.9944). Two errors of opposite sign meet there: the linear tets across the
+    rim lose force in proportion to the spacing there (at 0.01 mm the rim is not refined: the
+    face is shallower than a wall), and the tets and the coarse bulk are too stiff (at 0.1 mm,
+    where the rim is refined, the excess alone shows: next test). Linear, fine spacing
+    0.2 / 0.1 / 0.05 / 0.035 / 0.025 mm: x0.973 / 0.994 / 1.002 / 1.005 / 1.006 (still
+    rising: not converged); the bulk capped at 0.5 mm: x1.000 (0.1 mm), x0.998 (0.05 mm).
+    Allowed: 1 % (the spread of those meshes from 0.1 mm down, and the reference's 0.05 %).
+    """
     from tactile_deploy.fem.material import Material
     from tactile_deploy.fem.truth import TruthSolver
     from tactile_deploy.pad.geometry import PadGeometry
@@ -227,8 +234,38 @@ def test_flat_punch_force_matches_the_independent_fem(independent_punch, model):
     pad = PadGeometry(name="small", radius_mm=PAD_RADIUS_MM, thickness_mm=THICKNESS_MM)
     solver = TruthSolver(pad, Material(E_mpa=E_MPA, nu=PUNCH_NU), model=model)
     sol = solver.solve_field(flat_punch(PUNCH_RADIUS_MM, PUNCH_DEPTH_MM))
-    _, limit = independent_punch["small" if model == "linear" else "0.01"]
-    expected = limit * PUNCH_DEPTH_MM
+    _, limit, nonlinear = independent_punch
+    expected = limit * PUNCH_DEPTH_MM * (nonlinear if model == "neo-hookean" else 1.0)
     print(f"{model}: {sol.force_n:.7f} N vs independent FEM {expected:.7f} N "
           f"(x{sol.force_n / expected:.4f}), fine spacing {sol.info['h_fine_mm']:.3f} mm")
     assert sol.force_n == pytest.approx(expected, rel=0.01)
+
+
+@pytest.mark.slow
+def test_flat_punch_pressed_0p1mm_has_the_independent_fems_force():
+    """The same punch pressed 0.1 mm, neo-Hookean (in the independent FEM the rim's gel is
+    pulled ~3 um inward and the node beside it pressed against the side). The independent FEM
+    converges in the rim spacing (measured 1.1029892 / 1.1065936 / 1.1068350 / 1.1068055 N/mm
+    at 0.02 / 0.01 / 0.005 / 0.0025 mm, the same with 5, 10 or 20 load steps; 1.1065972 at
+    0.005 mm with the cells growing by 1.08 instead of 1.15; at 0.00125 mm elements fold at
+    the rim's corner and the iterations fail), so no extrapolation: the 0.005 mm level is good
+    to 0.03 %. The resolved solver at its automatic mesh (fine spacing 0.1 mm, the rim refined
+    to a third of it): 0.1119375 N vs 0.1106835 N (x1.0113); too stiff, less so on finer
+    meshes: the bulk capped at 0.5 mm x1.0058, fine spacing 0.05 mm x1.0002.
+    Allowed: 1.5 % (the automatic mesh's excess and the reference's 0.03 %)."""
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.truth import TruthSolver
+    from tactile_deploy.pad.geometry import PadGeometry
+    from test_truth import flat_punch
+
+    depth = 0.1
+    levels = [ref.press_punch(PAD_RADIUS_MM, THICKNESS_MM, E_MPA, PUNCH_NU, PUNCH_RADIUS_MM,
+                              depth, h_rim_mm=h, steps=5, tol_mm=1e-10).force_n
+              for h in (0.01, 0.005)]
+    assert levels[1] == pytest.approx(levels[0], rel=1e-3)  # converged in the rim spacing
+    pad = PadGeometry(name="small", radius_mm=PAD_RADIUS_MM, thickness_mm=THICKNESS_MM)
+    solver = TruthSolver(pad, Material(E_mpa=E_MPA, nu=PUNCH_NU))
+    sol = solver.solve_field(flat_punch(PUNCH_RADIUS_MM, depth))
+    print(f"independent FEM {levels[0]:.7f} / {levels[1]:.7f} N (rim 0.01 / 0.005 mm); "
+          f"resolved {sol.force_n:.7f} N (x{sol.force_n / levels[1]:.4f})")
+    assert sol.force_n == pytest.approx(levels[1], rel=0.015)
