@@ -362,7 +362,7 @@ def halved(pts: np.ndarray, times: int = 1) -> np.ndarray:
 
 
 def punch_grid(punch_radius_mm: float, radius_mm: float, thickness_mm: float,
-               h_rim_mm: float, growth: float = 1.3, h_max_mm: float = 0.5, refine: int = 0):
+               h_rim_mm: float, growth: float = 1.15, h_max_mm: float = 0.5, refine: int = 0):
     """The tensor grid (rs, zs) of :func:`press_punch`: graded towards the rim's corner
     (r = a, z = 0), with a grid line exactly at r = a; ``refine`` halvings of every cell."""
     rs = graded_about(punch_radius_mm, h_rim_mm, growth, radius_mm, h_max_mm)
