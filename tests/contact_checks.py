@@ -7,10 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def check_resolved_contact(sol, field, geometric: bool, label: str) -> tuple[float, float]:
+def check_resolved_contact(sol, field, geometric: bool, label: str,
+                           max_penetration_mm: float | None = 10e-3) -> tuple[float, float]:
     """Assert the contact conditions of the truth solution ``sol`` against the intrusion
     ``field`` (indenter surface depth, mm, sensor frame; ``geometric``: gaps at the current
-    positions). Returns (largest penetration mm, deepest surface point mm)."""
+    positions): penetration of the continuous surface at most ``max_penetration_mm`` (None:
+    measured, not checked), no tensile traction, gap and force complementary. Returns
+    (largest penetration mm, deepest surface point mm)."""
     from tactile_deploy.fem.truth import surface_penetration
 
     n = sol.mesh.n_plane
@@ -19,7 +22,8 @@ def check_resolved_contact(sol, field, geometric: bool, label: str) -> tuple[flo
     print(f"{label}: largest penetration {pen * 1e3:.2f} um, deepest surface point "
           f"{tip_depth:.5f} mm, force {sol.force_n:.4f} N")
     # 10 um anywhere, vertically, on a 10 um grid and at every node
-    assert pen <= 10e-3
+    if max_penetration_mm is not None:
+        assert pen <= max_penetration_mm
     assert np.all(sol.normal_force_n >= 0)  # no tensile traction
     # gap and force are complementary at every node
     X = sol.mesh.vertices[:n]

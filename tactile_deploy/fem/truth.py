@@ -22,7 +22,10 @@ the gel's piecewise-linear surface outside it:
   to the indenter;
 * **indenter points**: the indenter's sharp convex features over the contact (cone and pyramid
   tips, edges pointing into the gel): ``g = z_i - z_gel(x_i, y_i)``, the gel's current surface
-  height under the point, so a feature between nodes cannot pass through a triangle.
+  height under the point, so a feature between nodes cannot pass through a triangle;
+* **the apex** of a sharp tip (a cone's), large deformation: the truth mesh has a sensing node
+  there, held at the tip while the tip's force on it lies within the flanks' normal cone
+  (:meth:`_Solve._init_vertex`).
 
 ``model="linear"`` is the small-strain limit: linear material, gaps along z at the rest
 positions. Friction (per sensing node, tangent plane of the indenter at the node): frictionless,
@@ -77,6 +80,20 @@ RIM_WALL_MM = 0.02
 #: Edge length along such a rim, as a fraction of the fine spacing (half of it at the
 #: outline's corners); nodes within one such edge of the rim carry no friction.
 RIM_SPACING_FRACTION = 1.0 / 3.0
+#: ... times this at the outline's corners.
+RIM_CORNER_FACTOR = 0.5
+#: A point of the indenter is a sharp tip where its surface around it (:data:`TIP_PROBE_MM`
+#: away) rises by more than this slope: a cone's or a pyramid's apex.
+TIP_SLOPE_BREAK = 0.3
+#: Radius (mm) at which the flanks around a tip are probed: the envelope's pixel.
+TIP_PROBE_MM = 0.025
+#: Edge length at a sharp tip, as a fraction of the fine spacing, per gel model: small-strain,
+#: a quarter (the chords then follow a cone's flanks); large deformation, a half (a quarter's
+#: elements below the apex, crushed flat as the tip goes deeper, folded: a 90-degree cone
+#: stopped at 0.55 of 0.8 mm).
+TIP_SIZE_FRACTION = {"linear": 0.25, "neo-hookean": 0.5}
+#: A sensing node this close (mm) to a sharp tip's apex is the apex's node.
+VERTEX_SNAP_MM = 1e-4
 
 
 class TruthSolveError(RuntimeError):
@@ -105,6 +122,9 @@ class SolveSettings:
     anderson_depth: int = 5  # steps remembered when mixing the slip forces
     slide_steps: int = 2  # increments of a tangential slide (after the indenter is pressed)
     max_load_splits: int = 3  # failed depth increments retried as two halves, at most
+    # Depth increments (mm) at most under a sharp tip (a cone's apex; large deformation): the
+    # gel below the apex is crushed flat, and a longer increment's first Newton steps fold it.
+    tip_step_mm: float = 0.1
 
 
 @dataclass
@@ -361,11 +381,10 @@ class TruthSolver:
             region_xy = _dilate(pts, margin, h_fine_mm)
         tip = deepest_point(field_, pts, self.geometry)
         # A sharp tip (the intrusion bends by more than 0.3 in slope across it): triangles
-        # around it a quarter of the fine spacing, so their chords follow a cone's flanks.
-        probe = 0.025
-        ring = tip + probe * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
-        sharp = float(field_(tip[None])[0] - np.mean(field_(ring))) > 0.3 * probe
-        spots = [(float(tip[0]), float(tip[1]), 0.25 * h_fine_mm)] if sharp else []
+        # around it finer (TIP_SIZE_FRACTION), so their chords follow a cone's flanks.
+        sharp = tip_flank_slope(field_, tip, "mean") > TIP_SLOPE_BREAK
+        fraction = TIP_SIZE_FRACTION[self.model]
+        spots = [(float(tip[0]), float(tip[1]), fraction * h_fine_mm)] if sharp else []
         sizes = np.concatenate([curvature_sizes(field_, pts, h_fine_mm),
                                 rim_sizes(field_, pts, h_fine_mm)])
         mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
@@ -444,8 +463,22 @@ def rim_sizes(field_: IntrusionField, fp: np.ndarray, h_fine_mm: float,
     ang = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
     ring = 2 * pitch_mm * np.stack([np.cos(ang), np.sin(ang)], 1)
     covered = np.mean([np.isfinite(field_(rim + o)) for o in ring], axis=0)
-    size = RIM_SPACING_FRACTION * h_fine_mm * np.where(covered < 0.45, 0.5, 1.0)
+    size = RIM_SPACING_FRACTION * h_fine_mm * np.where(covered < 0.45, RIM_CORNER_FACTOR, 1.0)
     return np.column_stack([rim, np.maximum(size, H_FINE_MIN_MM)])
+
+
+def tip_flank_slope(field_: IntrusionField, tip: np.ndarray, how: str = "min",
+                    probe_mm: float = TIP_PROBE_MM) -> float:
+    """How steeply the indenter's surface rises around a point ``tip`` (2,) (sensor frame, mm):
+    the drop of the intrusion from ``tip`` to 8 points ``probe_mm`` around it, over
+    ``probe_mm``; their minimum (``how="min"``: the gentlest flank, 1 for a 90-degree cone, ~0
+    along a wedge's edge or on a smooth apex) or mean (``"mean"``). Uncovered points count as
+    flat (0)."""
+    ang = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+    ring = np.asarray(tip, float)[None] + probe_mm * np.stack([np.cos(ang), np.sin(ang)], 1)
+    drop = (float(field_(np.asarray(tip, float)[None])[0]) - field_(ring)) / probe_mm
+    drop = np.where(np.isfinite(drop), drop, 0.0)
+    return float(drop.min() if how == "min" else drop.mean())
 
 
 def deepest_point(field_: IntrusionField, fp: np.ndarray, geometry: PadGeometry,
@@ -552,9 +585,16 @@ class _Solve:
             dist = np.full(n_plane, np.inf)
         reach = 3.0 * h_fine + 0.5
         self.cand_nodes = np.flatnonzero(dist < reach)
+        self._init_vertex(fp)
         pts = feature_points(field_, fp, h_fine, solver.geometry)
         if features is not None:
             pts = np.concatenate([pts, np.asarray(features, float).reshape(-1, 2)])
+        # At a sharp tip the apex's node holds the tip itself; the flanks within a fine
+        # spacing of it are left to the nodes (as indenter points there, the triangles under
+        # them kept changing as the gel slid up the flanks, and the iterations wandered).
+        if self.tip >= 0:
+            apex = self.mesh.vertices[self.cand_nodes[self.tip], :2]
+            pts = pts[np.hypot(*(pts - apex).T) > h_fine] if len(pts) else pts
         self.ind_xy = pts
         self.ind_z = -field_(pts) if len(pts) else np.zeros(0)
         keep = np.isfinite(self.ind_z)
@@ -580,9 +620,36 @@ class _Solve:
         self.newton_steps = 0
         self.load_splits = 0
         self.beside = np.zeros(len(self.cand_nodes), bool)
+        self.tip_pinned = True
         self._cand_index = -np.ones(mesh.n_nodes, np.int64)
         self._cand_index[self.cand_nodes] = np.arange(len(self.cand_nodes))
         self._init_dof_layout()
+
+    def _init_vertex(self, fp: np.ndarray) -> None:
+        """The sensing node at a sharp tip (a cone's apex), if the mesh has one there.
+
+        At the apex the indenter's normal is not a direction but a cone (the normals of its
+        flanks): a node there is held by the tip (pinned to it) as long as the tip's force on
+        it lies within that cone, ``|f_T| <= s f_N`` about the pressing axis with s the
+        gentlest flank's slope (:func:`tip_flank_slope`); pushed harder sideways, it leaves
+        the apex and slides along a flank like any other node. (Measured as a normal face
+        contact at its current position instead, the node's normal flips from flank to flank
+        as it moves across the apex by a micrometre: the iterations wandered.) Large
+        deformation only: the small-strain model's gaps are vertical at the rest positions."""
+        self.tip = -1  # index into cand_nodes of the node at a sharp tip, or -1
+        self.tip_slope = 0.0
+        self.tip_z = 0.0
+        if not self.geometric or len(fp) == 0 or len(self.cand_nodes) == 0:
+            return
+        tip_xy = deepest_point(self.field, fp, self.s.geometry)
+        X = self.mesh.vertices[self.cand_nodes, :2]
+        k = int(np.argmin(np.hypot(*(X - tip_xy).T)))
+        if np.hypot(*(X[k] - tip_xy)) > VERTEX_SNAP_MM:
+            return
+        slope = tip_flank_slope(self.field, X[k], "min")
+        if slope > TIP_SLOPE_BREAK:
+            self.tip, self.tip_slope = k, slope
+            self.tip_z = -float(self.field(X[k][None])[0])
 
     # ------------------------------------------------------------------------ dof layout
     def _init_dof_layout(self):
@@ -620,6 +687,9 @@ class _Solve:
         w_n = np.zeros((len(nodes), 3, 3))
         if self.geometric:
             gap_n, w_n[:, 0] = self.node_gaps(p)
+            if self.tip >= 0 and self.tip_pinned:
+                gap_n[self.tip] = self.tip_z + self.lift - p[self.tip, 2]
+                w_n[self.tip, 0] = (0.0, 0.0, -1.0)
         else:
             d = self.field(X[nodes, :2]) - self.lift
             gap_n = np.where(np.isfinite(d), -d - p[:, 2], np.inf)
@@ -688,7 +758,22 @@ class _Solve:
         if self.geometric:
             nodes = self.cand_nodes
             n[nodes] = self.node_gaps(self.mesh.vertices[nodes] + u[nodes])[1]
+            if self.tip >= 0 and self.tip_pinned:
+                n[nodes[self.tip]] = (0.0, 0.0, -1.0)  # the pressing axis
         return n
+
+    def _hold_apex(self, new_stick, new_n, act_n, lam_n, nt) -> None:
+        """The node at a sharp tip stays pinned to the apex (``new_stick`` set in place) while
+        in contact, unless the tip's force on it leaves the flanks' normal cone
+        (``|f_T| > s f_N``): then it is released for good and slides like any other node."""
+        k = self.tip
+        if k < 0:
+            return
+        if self.tip_pinned and act_n[k] and lam_n[k] > 0 and nt[k] > self.tip_slope * lam_n[k]:
+            self.tip_pinned = False
+            log.debug("the apex's node is pushed off the tip (|f_T| %.3g N > %.2f x %.3g N)",
+                      nt[k], self.tip_slope, lam_n[k])
+        new_stick[k] = new_n[k] and self.tip_pinned
 
     def friction_bound(self, fn: np.ndarray) -> np.ndarray:
         """Largest tangential force (N) of each candidate node for its normal force fn (N)."""
@@ -773,6 +858,8 @@ class _Solve:
         n_steps = 1
         if self.geometric:
             n_steps = max(1, math.ceil(depth / (st.step_strain * self.s.geometry.thickness_mm)))
+            if self.tip >= 0:
+                n_steps = max(n_steps, math.ceil(depth / st.tip_step_mm))
         slide = self.slide
         n_slide = st.slide_steps if np.any(slide != 0.0) else 0
         history = []
@@ -785,7 +872,7 @@ class _Solve:
         while i < len(lifts):
             saved = (u.copy(), None if state is None else
                      {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()},
-                     self.beside.copy())
+                     self.beside.copy(), self.tip_pinned)
             self.lift = lifts[i]
             try:
                 u, state = self._solve_step(u, depth, history, state,
@@ -794,7 +881,7 @@ class _Solve:
                 if splits >= st.max_load_splits or not self.geometric:
                     raise
                 log.debug("depth increment to %.4f mm failed (%s): halved", lifts[i], err)
-                u, state, self.beside = saved
+                u, state, self.beside, self.tip_pinned = saved
                 lifts.insert(i, 0.5 * (done_lift + lifts[i]))
                 splits += 1
                 self.load_splits = splits
@@ -831,6 +918,8 @@ class _Solve:
         else:
             state["active_n"] = state["active_n"] | (c.gap[:nc] < 0)
             state["active_p"] = state["active_p"] | (c.gap[nc:] < 0)
+        if self.tip >= 0 and self.tip_pinned:
+            state["stick"][self.tip] = state["active_n"][self.tip]
         prev_step = np.inf
         cut_steps = 0  # consecutive steps cut short because a full one inverts elements
         contraction = np.inf  # last step / the one before
@@ -950,12 +1039,14 @@ class _Solve:
             tau -= np.einsum("ki,ki->k", tau, normals)[:, None] * normals
             nt = np.linalg.norm(tau, axis=1)
             new_stick = new_n & (nt <= bound) & (bound > 0) & ~no_stick
+            self._hold_apex(new_stick, new_n, act_n, lam_n, nt)
             key = (new_n.tobytes(), new_p.tobytes(), new_stick.tobytes())
             if key in seen:  # a cycle: the nodes that just changed their sets stop sticking
                 kept |= (new_n != act_n) & no_stick
                 new_n |= kept
                 no_stick |= (new_n != act_n) | (new_stick != stick)
                 new_stick &= ~no_stick
+                self._hold_apex(new_stick, new_n, act_n, lam_n, nt)
             seen.add(key)
             f_slip = np.where((new_n & ~new_stick & ~no_stick)[:, None],
                               np.where(np.isfinite(bound), bound, 0.0)[:, None] * tau
@@ -1048,7 +1139,9 @@ class _Solve:
                   # sensing nodes kept in contact against cycling, and the largest tensile
                   # force among them (N; 0 when none pulls)
                   "kept_nodes": nodes[kept & state["active_n"]],
-                  "kept_tension_n": float(max(0.0, -lam_n[kept].min(initial=0.0)))},
+                  "kept_tension_n": float(max(0.0, -lam_n[kept].min(initial=0.0))),
+                  # the sensing node held at a sharp tip's apex (-1: none, or pushed off it)
+                  "apex_node": int(nodes[self.tip]) if self.tip >= 0 and self.tip_pinned else -1},
         )
 
 
