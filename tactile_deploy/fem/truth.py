@@ -80,7 +80,7 @@ RIM_WALL_MM = 0.02
 #: Edge length along such a rim, as a fraction of the fine spacing (half of it at the
 #: outline's corners); nodes within one such edge of the rim carry no friction.
 RIM_SPACING_FRACTION = 1.0 / 3.0
-#: ... times this at the outline's corners.
+#: Edge length at the outline's corners, relative to the rest of the rim.
 RIM_CORNER_FACTOR = 0.5
 #: A point of the indenter is a sharp tip where its surface around it (:data:`TIP_PROBE_MM`
 #: away) rises by more than this slope: a cone's or a pyramid's apex.
