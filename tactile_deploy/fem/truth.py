@@ -38,7 +38,8 @@ the solution): semismooth Newton on the contact, stick and slip sets (primal-dua
 each step solving the tangent system with the active constraints holding exactly in their
 linearised form; the sets are re-chosen after each step from the complementarity functions
 (:meth:`_Solve._solve_step`). Large deformation: the depth in increments of a tenth of the
-thickness, an increment that fails halved. docs/fem.md states what is validated against what.
+thickness (at most ``SolveSettings.tip_step_mm`` under a sharp tip), an increment that fails
+halved. docs/fem.md states what is validated against what.
 
 Units: mm, MPa, N. The solution is computed at the given E (forces scale with E).
 """
