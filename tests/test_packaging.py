@@ -87,7 +87,9 @@ def check_file_list(files: set[str]) -> None:
                 assert target in files, f"plugin {name}: {field} -> {target} is not in the wheel"
     # the runtime's models and cards, the adaptation step and the fp32 twin it starts from
     for name in ("gelslim_mesh.onnx", "gelslim_mesh.json", "gelslim_mesh.md", "gelslim_readout.onnx",
-                 "gelslim_readout.json", "gelslim_mesh_fp32.onnx", "gelslim_mesh_adapt/step.pt2",
+                 "gelslim_readout.json", "gelsight_mini_readout.onnx", "gelsight_mini_readout.json",
+                 "gelsight_mini_readout.md", "digit_readout.onnx", "digit_readout.json", "digit_readout.md",
+                 "gelslim_mesh_fp32.onnx", "gelslim_mesh_adapt/step.pt2",
                  "gelslim_mesh_adapt/filter.onnx", "gelslim_mesh_adapt/card.json"):
         assert f"tactile_deploy/exported/{name}" in files, name
     # not shipped: training bundles, figures, the scripts and configs that rebuild the plugins

@@ -189,6 +189,19 @@ def test_swapped_annotation_axes(presses, tmp_path):
     assert "swap the two columns" in text
 
 
+def test_readout_of_another_design(presses, tmp_path):
+    from tactile_deploy.shipped import model_path
+
+    text = _clean_error(_calibrate(presses, tmp_path, "--mm-per-px", str(MM_PER_PX), "--readout",
+                                   str(model_path("digit_readout.onnx")),
+                                   annotations=presses / "annotate.csv"))
+    assert "design 'digit'" in text and "not --pad 'gelsight_mini'" in text
+    assert "exported/gelsight_mini_readout.onnx" in text and "leave --readout out" in text
+    text = _clean_error(_calibrate(presses, tmp_path, "--readout", str(tmp_path / "none.onnx"),
+                                   annotations=presses / "annotate.csv"))
+    assert "--readout" in text and "none.onnx" in text and "not found" in text
+
+
 def test_reference_with_a_contact(presses, tmp_path):
     text = _clean_error(_calibrate(presses, tmp_path, "--mm-per-px", str(MM_PER_PX),
                                    "--reference", str(presses / "0007.png")))

@@ -10,13 +10,18 @@ Data flow of :func:`calibrate_recording`::
     ball radius vs circles                          checks.check_ball_radius
     frames rectified onto the imaging grid          (the runtime's own rectifier)
     shading model fitted (calibrate shading's fit)  tactile_deploy.calibration.shading.fit.fit_shading
+    with --readout: the read-out's design checked   readout.load_family_readout, readout.measurable
+    against the pad, the grid made its own
+    (model-grid cells); it reads the depth
     held-out presses (k-fold)                       tactile_deploy.calibration.shading.evaluate.cross_validate
     plugin folder assembled beside the target, checked by the runtime's loader, renamed into
     place (an existing plugin only with overwrite)
 
-The plugin has no learned model: its meshes come from the pad family's physics lift
-(``tactile-deploy run`` says so). Its material is the family's prior (E 0.3 MPa, nu 0.48):
-without force measurements E is not identifiable; forces scale with it.
+The plugin has no learned mesh model: its meshes come from the pad family's physics lift
+(``tactile-deploy run`` says so). With ``readout`` its depth comes from the learned read-out of
+the family's design (copied into the plugin), else from the fitted shading model. Its material
+is the family's prior (E 0.3 MPa, nu 0.48): without force measurements E is not identifiable;
+forces scale with it.
 """
 
 from __future__ import annotations
@@ -36,6 +41,12 @@ import numpy as np
 from tactile_deploy.calibration.recording.checks import check_annotation_axes, check_ball_radius, view_mapping
 from tactile_deploy.calibration.recording.errors import PlausibilityError
 from tactile_deploy.calibration.recording.load import Recording, load_recording
+from tactile_deploy.calibration.recording.readout import (
+    MIN_REGION_CELLS,
+    ReadoutDepth,
+    load_family_readout,
+    measurable,
+)
 
 #: Material used when no forces were recorded (E is then not identifiable).
 PRIOR_E_MPA = 0.3
@@ -68,15 +79,16 @@ def _target_folder(sensor: str, out: str | os.PathLike | None,
     return Path(out) if out is not None else Path(sensor)
 
 
-def _grid_circles(circles_raw: np.ndarray, camera) -> np.ndarray:
-    """Circles (column, row, radius) raw px -> imaging-grid px (same scale: radius kept)."""
+def _grid_circles(circles_raw: np.ndarray, camera, mm_per_px: float) -> np.ndarray:
+    """Circles (column, row, radius) raw px -> imaging-grid cells (the radius scaled by the
+    frames' mm per px over the grid's pitch: kept when the grid has the frames' scale)."""
     from tactile_deploy.imaging.camera_mapping import pixels_to_sensor_mm
 
     g = camera.grid
     xy = pixels_to_sensor_mm(circles_raw[:, :2], camera)
     col = (xy[:, 0] - g.x_min_mm) / g.pitch_x_mm - 0.5
     row = (g.y_max_mm - xy[:, 1]) / g.pitch_y_mm - 0.5
-    return np.c_[col, row, circles_raw[:, 2]]
+    return np.c_[col, row, circles_raw[:, 2] * mm_per_px / g.pitch_x_mm]
 
 
 def _detect_all(rec: Recording) -> np.ndarray:
@@ -100,8 +112,11 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                         mm_per_px: float | None = None, out: str | os.PathLike | None = None,
                         plugins_dir: str | os.PathLike | None = None, overwrite: bool = False,
                         folds: int = 5, shallow_presses: bool = False,
+                        readout: str | os.PathLike | None = None,
                         say: Callable[[str], None] = print) -> RecordingCalibration:
-    """Calibrate a plugin from recorded ball presses (module docstring). Raises
+    """Calibrate a plugin from recorded ball presses (module docstring). ``readout``: a learned
+    read-out (.onnx) of the pad family's design, used for depth instead of the fitted shading
+    model (:mod:`.readout`). Raises
     :class:`~tactile_deploy.calibration.recording.errors.PlausibilityError`,
     :class:`~tactile_deploy.calibration.shading.presses.PressDataError` or
     :class:`~tactile_deploy.runtime.plugins.PluginError` naming what to fix."""
@@ -130,6 +145,7 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
         raise PlausibilityError(f"--mm-per-px must be a number > 0 (mm per pixel), got {mm_per_px}")
     if folds != 0 and folds < 2:
         raise PlausibilityError(f"--folds must be 0 (no held-out check) or at least 2, got {folds}")
+    learned = load_family_readout(readout, family.name)[0] if readout is not None else None
 
     rec = load_recording(presses, reference, annotations)
     h, w = rec.shape
@@ -166,30 +182,57 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                      f"{figures['largest contact radius / ball radius']:.2f} of the ball's "
                      "radius; depth of steeper contacts than these presses will be read too flat")
 
-    rectifier = Rectifier(camera, supersample=1)
+    if learned is not None:   # a read-out reads the grid it was trained on: model-grid cells
+        from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
+
+        camera = with_grid(camera, imaging_grid(camera, fast_sizes=False))
+        notes.append(f"imaging grid: {camera.grid.nx} x {camera.grid.ny} cells of "
+                     f"{camera.grid.pitch_x_mm:.4f} mm (the learned read-out's cells)")
+        rectifier = Rectifier(camera)    # as the runtime's pipeline rectifies
+    else:
+        rectifier = Rectifier(camera, supersample=1)
+    pitch_mm = camera.grid.pitch_x_mm
 
     def rect(frame):
         return resample_to_grid(rectify_frame(frame, rectifier), rectifier)
 
     ref_g = rect(rec.reference)
     press_set = PressSet(ref_g, np.stack([rect(f) for f in rec.frames]), list(rec.names),
-                         _grid_circles(circles_raw, camera))
+                         _grid_circles(circles_raw, camera, mm_per_px))
     say(f"fitting the shading model on {len(press_set)} presses "
-        f"({press_set.shape[1]} x {press_set.shape[0]} px imaging grid, {mm_per_px:.5f} mm/px)")
-    fit = fit_shading(press_set, ball_radius_mm, mm_per_px)
+        f"({press_set.shape[1]} x {press_set.shape[0]} cells imaging grid, {pitch_mm:.5f} mm per cell)")
+    fit = fit_shading(press_set, ball_radius_mm, pitch_mm)
     metrics = {"presses": len(press_set), "mm per px": mm_per_px,
                "in-sample sphere residual (um)": fit.model.header.fit_metrics[
                    "in_sample_sphere_rms_um"], **figures}
+    if learned is not None:
+        keep = measurable(press_set)
+        if not keep.all():
+            notes.append(f"{int((~keep).sum())} of {len(keep)} presses cover fewer than "
+                         f"{MIN_REGION_CELLS} cells of the read-out's grid within 0.8 contact radii "
+                         "(small or cut by the view's edge): left out of the held-out check")
+        if keep.sum() < 2:
+            raise PlausibilityError(
+                f"only {int(keep.sum())} of {len(keep)} presses cover {MIN_REGION_CELLS} cells of the "
+                f"learned read-out's grid ({pitch_mm:.3f} mm) within 0.8 contact radii: record "
+                "deeper presses away from the view's edges, or leave --readout out")
+        press_set = press_set.subset(keep)
+        reader = ReadoutDepth(learned, ref_g, camera.grid)
+        metrics["depth from"] = f"learned read-out {Path(readout).name}"
+
+        def fitter(train):    # the read-out is not fitted: every press is held out
+            return reader
+    else:
+        metrics["depth from"] = "the fitted shading model"
+
+        def fitter(train):
+            return DepthFromShading(fit_shading(train, ball_radius_mm, pitch_mm).model,
+                                    train.reference)
     held_out = []
     if folds:
         folds = min(folds, len(press_set))
         say(f"checking on held-out presses ({folds}-fold)")
-
-        def fitter(train):
-            return DepthFromShading(fit_shading(train, ball_radius_mm, mm_per_px).model,
-                                    train.reference)
-
-        held_out = cross_validate(press_set, fitter, ball_radius_mm, mm_per_px, folds)
+        held_out = cross_validate(press_set, fitter, ball_radius_mm, pitch_mm, folds)
         shape = np.array([r.shape_um for r in held_out])
         rad = np.array([r.radius_error for r in held_out])
         metrics.update({"held-out shape error mean (um)": float(shape.mean()),
@@ -197,14 +240,15 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                         "held-out fitted radius error worst (%)": float(100 * np.abs(rad).max()),
                         "held-out fitted radius error mean (%)": float(100 * rad.mean())})
     folder = _write_plugin(sensor, family, target, overwrite, rec, camera, fit, metrics,
-                           notes, mm_per_px, ball_radius_mm, turns)
+                           notes, mm_per_px, ball_radius_mm, turns, learned)
     return RecordingCalibration(folder, metrics, notes, held_out)
 
 
 def _write_plugin(sensor, family, target: Path, overwrite: bool, rec: Recording, camera, fit,
                   metrics: dict, notes: list[str], mm_per_px: float, ball_radius_mm: float,
-                  turns: int) -> Path:
-    """Assemble the plugin beside ``target``, check it with the runtime's loader, rename it."""
+                  turns: int, readout=None) -> Path:
+    """Assemble the plugin beside ``target``, check it with the runtime's loader, rename it.
+    ``readout``: a LearnedReadout, copied into the plugin as ``readout.onnx``."""
     import cv2
 
     from tactile_deploy.atomic import replace_folder
@@ -233,8 +277,11 @@ def _write_plugin(sensor, family, target: Path, overwrite: bool, rec: Recording,
             raise OSError(f"could not write {staging / 'reference.png'}")
         # the no-contact depth: the other no-contact frames of the recording through the pipeline
         # (none: zero - one frame has no fixed-pattern noise of its own to show)
+        if readout is not None:
+            shutil.copyfile(readout.path, staging / "readout.onnx")
         plain = ImagingPipeline(camera, fit.model, rec.reference, None, "keep",
-                                depth_grid=family.depth_grid)
+                                depth_grid=family.depth_grid,
+                                readout=readout)
         if len(rec.no_contact):
             noise = np.mean([plain.frame_to_depth(f) for f in rec.no_contact], axis=0)
         else:
@@ -277,6 +324,10 @@ def _write_plugin(sensor, family, target: Path, overwrite: bool, rec: Recording,
         files = {"shading": staging / "shading.npz", "reference_frame": staging / "reference.png",
                  "noise_reference": staging / "noise_reference.npy",
                  "demo_clip": staging / "demo.npz", "topology": staging / "topology.npz"}
+        if readout is not None:
+            files["readout"] = staging / "readout.onnx"
+            prov["readout"] = (f"{readout.path.name} (design {readout.metadata.get('design')}), "
+                               "depth gain 1 (no intrusions recorded)")
         write_plugin(staging, fields, files)
         report = validate_plugin(staging)
         if not report.ok:

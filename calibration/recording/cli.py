@@ -21,7 +21,8 @@ def calibrate_from_recording(sensor: str, pad: str | None, presses: Path,
                              ball_radius_mm: float | None, reference: Path | None,
                              annotations: Path | None, mm_per_px: float | None,
                              plugins_dir: Path | None, out: Path | None, overwrite: bool,
-                             folds: int, shallow_presses: bool = False) -> None:
+                             folds: int, shallow_presses: bool = False,
+                             readout: Path | None = None) -> None:
     """Run :func:`tactile_deploy.calibration.recording.build.calibrate_recording` and print what it did."""
     from tactile_deploy.calibration.recording.build import calibrate_recording
     from tactile_deploy.calibration.recording.errors import PlausibilityError
@@ -39,7 +40,7 @@ def calibrate_from_recording(sensor: str, pad: str | None, presses: Path,
         result = calibrate_recording(
             sensor, pad, presses, ball_radius_mm=ball_radius_mm, reference=reference,
             annotations=annotations, mm_per_px=mm_per_px, out=out, plugins_dir=plugins_dir,
-            overwrite=overwrite, folds=folds, shallow_presses=shallow_presses,
+            overwrite=overwrite, folds=folds, shallow_presses=shallow_presses, readout=readout,
             say=lambda m: typer.echo(m, err=True))
     except (PlausibilityError, PressDataError, PluginError) as e:
         _fail(str(e))

@@ -70,6 +70,10 @@ def calibrate_callback(
     shallow_presses: bool = typer.Option(
         False, "--shallow-presses", help="With --presses: the ball radius is right although "
         "every contact stays within half of it (skips the diameter check)."),
+    readout: Optional[Path] = typer.Option(
+        None, "--readout", help="With --presses: a learned read-out (.onnx) of the pad family's "
+        "design (e.g. exported/gelsight_mini_readout.onnx) reads the depth instead of the fitted "
+        "shading model; its depth gain is calibrated from the ball's curvature."),
 ) -> None:
     """Calibrate a new sensor (the wizard), or run one step with a subcommand."""
     given = [n for n, v in (("--sensor", sensor), ("--rig", rig), ("--gauge", gauge),
@@ -86,7 +90,8 @@ def calibrate_callback(
     recording_only = [n for n, v in (("--pad", pad), ("--reference", reference),
                                      ("--annotations", annotations),
                                      ("--ball-radius-mm", ball_radius_mm),
-                                     ("--mm-per-px", mm_per_px), ("--plugins-dir", plugins_dir))
+                                     ("--mm-per-px", mm_per_px), ("--plugins-dir", plugins_dir),
+                                     ("--readout", readout))
                       if v is not None]
     if presses is not None:
         wizard_only = [n for n, v in (("--rig", rig), ("--gauge", gauge), ("--config", config),
@@ -98,7 +103,8 @@ def calibrate_callback(
         from tactile_deploy.calibration.recording.cli import calibrate_from_recording
 
         calibrate_from_recording(sensor, pad, presses, ball_radius_mm, reference, annotations,
-                                 mm_per_px, plugins_dir, out, overwrite, folds, shallow_presses)
+                                 mm_per_px, plugins_dir, out, overwrite, folds, shallow_presses,
+                                 readout)
         return
     if recording_only:
         _fail(f"{', '.join(recording_only)} go with --presses DIR (a calibration from recorded "

@@ -18,11 +18,13 @@ from tactile_deploy.imaging.camera_mapping import (
 )
 
 
-def imaging_grid(camera: CameraMapping, divisor: int = 1, margin_px: float = 2.0) -> OutputGrid:
+def imaging_grid(camera: CameraMapping, divisor: int = 1, margin_px: float = 2.0,
+                 fast_sizes: bool = True) -> OutputGrid:
     """The largest axis-aligned box of whole model-grid cells whose corners the camera sees
-    (``margin_px`` inside the image), trimmed to sizes with prime factors 2, 3 and 5 only (the
-    depth integration's sine transforms are ~1.5 x faster), as an OutputGrid at
-    ``model pitch / divisor``.
+    (``margin_px`` inside the image), as an OutputGrid at ``model pitch / divisor``. With
+    ``fast_sizes`` it is trimmed (centred) to sizes with prime factors 2, 3 and 5 only (the
+    shading model's depth integration by sine transforms is ~1.5 x faster); a learned read-out,
+    which integrates nothing, reads the whole box.
 
     Raises ValueError when the camera sees no whole model-grid cell.
     """
@@ -47,7 +49,7 @@ def imaging_grid(camera: CameraMapping, divisor: int = 1, margin_px: float = 2.0
         r0, r1, c0, c1 = (r0 + (side == "r0"), r1 - (side == "r1"), c0 + (side == "c0"),
                           c1 - (side == "c1"))
     # trim to cell counts whose prime factors are 2, 3, 5 (fast sine transforms), centred
-    for axis in (0, 1):
+    for axis in (0, 1) if fast_sizes else ():
         a, b = (r0, r1) if axis == 0 else (c0, c1)
         n = b - a + 1
         keep = max(k for k in range(1, n + 1) if _smooth(k * divisor))

@@ -1,7 +1,7 @@
 """Presses of virtual units on their imaging grids: rectified frames, their features and true depth.
 
-For each unit: its imaging grid (the camera's view, cells of the model grid's pitch:
-:func:`tactile_deploy.imaging.imaging_grid.imaging_grid`), the rectified no-contact frame, then
+For each unit: its imaging grid (the camera's view, the whole box of model-grid cells it sees,
+not trimmed to fast sizes: :func:`tactile_deploy.imaging.imaging_grid.imaging_grid`), the rectified no-contact frame, then
 presses drawn by :class:`PressMix`: spheres (radii ``RADII_MM``, depth up to 1 mm and 0.6 R,
 centres anywhere with at least half the contact radius inside the view), the indenter library's
 shapes (``tactile-deploy indenters list``) and procedural faces of many kinds and sizes
@@ -112,7 +112,7 @@ def unit_presses(config, n: int, rng: np.random.Generator, simulator=None,
 
     sensor = VirtualSensor(config, simulator=simulator)
     sensor.prepare()
-    camera = with_grid(config.optics.camera, imaging_grid(config.optics.camera))
+    camera = with_grid(config.optics.camera, imaging_grid(config.optics.camera, fast_sizes=False))
     grid = camera.grid
     rect = Rectifier(camera, 2)
     to_grid = GridResampler(sensor.renderer.grid, grid)

@@ -44,7 +44,8 @@ def _cache_spec(args) -> dict:
     from .crops import JITTER_CELLS
 
     return {"design": args.design, "units": args.units, "presses": args.presses, "seed": args.seed,
-            "crop_cells": args.crop, "jitter_cells": JITTER_CELLS, "mix": list(args.mix)}
+            "crop_cells": args.crop, "jitter_cells": JITTER_CELLS, "mix": list(args.mix),
+            "imaging_grid": "whole box of model-grid cells"}
 
 
 def _check_args(args) -> None:
@@ -68,16 +69,19 @@ def _check_args(args) -> None:
         sensor_config(args.design)
     except (UnknownSensorError, SensorConfigError, FileNotFoundError) as e:
         raise UsageError(f"--design: {e}") from None
+    if args.out is None:
+        args.out = Path("exported") / f"{sensor_config(args.design).pad}_readout.onnx"
     out = args.out
-    if out.suffix != ".onnx" or out.name.startswith("-"):
-        raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
-                         f"{out.stem}.json); choose another --out")
-    if out.is_dir():
-        raise UsageError(f"--out {out} is a folder: give a file name inside it")
-    existing = [p for p in (out, out.with_suffix(".json")) if p.exists()]
-    if existing and not args.overwrite:
-        raise UsageError(f"--out {out}: {' and '.join(map(str, existing))} exist{'s' if len(existing) == 1 else ''}: "
-                         "pass --overwrite to replace, or choose another --out")
+    if not args.data_only:   # --data-only writes no model
+        if out.suffix != ".onnx" or out.name.startswith("-"):
+            raise UsageError(f"--out {out}: the file name must end in .onnx (its card is written beside it as "
+                             f"{out.stem}.json); choose another --out")
+        if out.is_dir():
+            raise UsageError(f"--out {out} is a folder: give a file name inside it")
+        existing = [p for p in (out, out.with_suffix(".json")) if p.exists()]
+        if existing and not args.overwrite:
+            raise UsageError(f"--out {out}: {' and '.join(map(str, existing))} exist{'s' if len(existing) == 1 else ''}: "
+                             "pass --overwrite to replace, or choose another --out")
     if args.crop < 8:
         raise UsageError(f"--crop must be >= 8 cells, got {args.crop}")
     if len(args.mix) != 3 or min(args.mix) < 0 or abs(sum(args.mix) - 1.0) > 1e-6:
@@ -147,9 +151,9 @@ def main(argv=None) -> int:
                     help="write the crops to --data-cache and stop (to train them elsewhere)")
     ap.add_argument("--weights", type=Path, default=None,
                     help="export these weights (.pt of python -m tactile_deploy.training.shading_net.fitting) instead of training")
-    ap.add_argument("--out", type=Path, default=Path("exported/gelslim_readout.onnx"),
-                    help="ONNX file to write, relative to the current folder (default: %(default)s); its card "
-                    "<stem>.json goes beside it")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="ONNX file to write, relative to the current folder (default: "
+                    "exported/<the design's pad>_readout.onnx); its card <stem>.json goes beside it")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing --out and its card")
     args = ap.parse_args(argv)
     _check_args(args)

@@ -23,10 +23,13 @@ import numpy as np
 def region_rmse_um(depth_mm: np.ndarray, truth_mm: np.ndarray, threshold_mm: float = 0.01,
                    grow_cells: int = 4) -> float:
     """RMSE (um) of ``depth_mm`` against ``truth_mm`` (H, W) where the truth exceeds
-    ``threshold_mm``, grown by ``grow_cells`` cells."""
+    ``threshold_mm``, grown by ``grow_cells`` cells; NaN where it exceeds it nowhere (a press
+    that left no contact inside the grid)."""
     from scipy import ndimage
 
     m = ndimage.binary_dilation(truth_mm > threshold_mm, iterations=grow_cells)
+    if not m.any():
+        return float("nan")
     return float(np.sqrt(np.mean((depth_mm[m] - truth_mm[m]) ** 2)) * 1e3)
 
 
@@ -61,7 +64,8 @@ def main(argv=None) -> int:
         for f, t, kind in zip(features, presses.depth_mm, presses.kinds):
             errors.setdefault(str(kind), []).append(region_rmse_um(readout.depth_mm(f), t))
         print(f"{path.name}: " + "; ".join(
-            f"{kind} {np.mean(e):.1f} um mean, {np.max(e):.0f} worst ({len(e)})"
+            f"{kind} {np.nanmean(e):.1f} um mean, {np.nanmax(e):.0f} worst "
+            f"({int(np.isfinite(e).sum())} presses with a contact in the grid)"
             for kind, e in sorted(errors.items(), reverse=True)), flush=True)
     return 0
 
