@@ -120,3 +120,18 @@ def test_append_score_keeps_the_mesh_path_and_refuses_a_second_edit():
     with pytest.raises(ValueError, match="already"):
         append_score(edited, st)
     onnx.checker.check_model(edited)
+
+
+def test_cli_refuses_a_graph_that_already_has_the_score(tmp_path, capsys):
+    """`ood-score` on the shipped (edited) graph: one error naming the file, nothing written."""
+    import shutil
+
+    from tactile_deploy.training.__main__ import main
+
+    for name in ("gelslim_mesh.onnx", "gelslim_mesh_fp32.onnx", "gelslim_mesh.json", "gelslim_mesh.md"):
+        shutil.copy(ROOT / "exported" / name, tmp_path / name)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    rc = main(["ood-score", "--onnx", str(tmp_path / "gelslim_mesh.onnx"), "--bundle", str(ROOT / "exported" / "gelslim_mesh.pt")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "already" in err and str(tmp_path / "gelslim_mesh.onnx") in err, err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -196,8 +196,8 @@ def fit_statistics(model, spec) -> OodStatistics:
         raise ValueError(f"FIT_SEED {FIT_SEED} is the training seed")
     maps = fitting_maps(spec, FIT_N, FIT_SEED)
     recon = run_graph(model, maps)["recon"][:, 0].astype(np.float64)
-    p = POOL_PX
-    e = (recon - maps).reshape(len(maps), 128 // p, p, 128 // p, p).mean((2, 4))
+    p, r = POOL_PX, maps.shape[1]
+    e = (recon - maps).reshape(len(maps), r // p, p, r // p, p).mean((2, 4))
     y = 0.5 * np.log((e**2).mean((1, 2)) + NOISE_MM**2)
     x = 0.5 * np.log((maps.astype(np.float64) ** 2).mean((1, 2)) + NOISE_MM**2)
     slope = float(np.linalg.lstsq(np.c_[x, np.ones_like(x)], y, rcond=None)[0][0])
@@ -211,7 +211,8 @@ def apply_to_export(onnx_path: Path, bundle_path: Path) -> dict:
     """Replace ``ood_score`` in the shipped graph ``onnx_path`` and its fp32 twin
     (``<stem>_fp32.onnx``) by this module's score, with the new threshold in their metadata and the
     model card (``<stem>.json``/``.md``); vertices are checked bit-identical on the held-out maps.
-    Returns the card's new ``ood`` entry. Files are replaced together at the end (atomic each)."""
+    Returns {"ood": the card's new entry, "ood_threshold_mm", "files"}. Files are replaced together
+    at the end (atomic each); a graph that already has the score is a ValueError."""
     import onnx
 
     from tactile_deploy.onnx_runtime.metadata import read_metadata, set_metadata
@@ -262,6 +263,15 @@ def apply_to_export(onnx_path: Path, bundle_path: Path) -> dict:
     card["ood_threshold_mm"] = threshold
     card["outputs"]["ood_score"] = ("[N] float32, mm, coarse (8 x 8 px) reconstruction error of the depth map by the lean "
                                     "image decoder, normalised to a contact of median size (see ood)")
+    import torch
+
+    k = min(128, HELD_N)  # the fp32 graph's score against the formula on the torch model's reconstruction
+    with torch.no_grad():
+        x = model_pt.normalise_depth(torch.as_tensor(held[:k, None]))
+        recon_t = (model_pt.ood_decoder(model_pt.image_vae.encoder(x)[0]) * model_pt.norm.depth_scale_mm).numpy()
+    ref_graph = twin if twin in results else onnx_path
+    card["parity"]["ood_max_abs_diff_mm"] = float(np.abs(results[ref_graph]["score"][:k] - score_numpy(recon_t, held[:k], stats)).max())
+    card["parity"]["ood_inputs"] = f"the first {k} of the threshold's maps (seed {HELD_SEED})"
     if twin in results:
         card["parity"]["shipped_vs_fp32_ood_max_abs_diff_mm"] = float(np.abs(results[onnx_path]["score"] - results[twin]["score"]).max())
     writes = paths + [card_json, card_md]
