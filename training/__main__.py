@@ -4,6 +4,7 @@
     torchrun --nproc_per_node 8 -m tactile_deploy.training train --config runs/big.json --device cuda
     python -m tactile_deploy.training export --run runs/small --out exported/gelslim_mesh.onnx [--variant fused-int8] [--overwrite]
     python -m tactile_deploy.training report-coarsening --data DATA.npz [--png FIGURE.png]
+    python -m tactile_deploy.training ood-score [--onnx exported/gelslim_mesh.onnx] [--bundle exported/gelslim_mesh.pt]
     python -m tactile_deploy.training export-adapt --bundle MODEL.pt [--onnx exported/gelslim_mesh.onnx] [--out DIR]
     python -m tactile_deploy.training envelope-bank --out .device/bank_primitive.npz [--indenters primitive]
     python -m tactile_deploy.training heldout --run out/predictor/gpu_h100 [--n 512] [--seed 1007]
@@ -17,6 +18,7 @@ exit status 2 (:mod:`tactile_deploy.training.errors`); nothing is written then.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -110,6 +112,11 @@ def _main(argv: list[str]) -> int:
     p_exp.add_argument("--config", required=True, help="ExperimentConfig JSON file")
     p_exp.add_argument("--out", required=True, help="folder for experiments.json and scratch checkpoints")
     p_exp.add_argument("--only", default="latent,kl,scratch", help="comma-separated groups: latent, kl, scratch")
+    p_ood = sub.add_parser(
+        "ood-score", help="replace an exported graph's ood_score (and its fp32 twin's) by the size-normalised score "
+        "(training/ood_score.py), with its threshold in the metadata and the model card")
+    p_ood.add_argument("--onnx", default="exported/gelslim_mesh.onnx", help="the exported *-fastood graph")
+    p_ood.add_argument("--bundle", default="exported/gelslim_mesh.pt", help="its training bundle (the generator)")
     p_held = sub.add_parser(
         "heldout", help="simulate fresh held-out contacts of a run's training distribution into RUN/heldout.npz (CPU)"
     )
@@ -188,6 +195,19 @@ def _main(argv: list[str]) -> int:
         info = slim_bundle(args.bundle, args.out, args.dtype)
         print(f"wrote {args.out}: {info['tensors']} tensors, {info['numbers']:,} numbers ({info['dtype']}), "
               f"{info['bytes'] / 2**20:.1f} MiB")
+        return 0
+
+    if args.command == "ood-score":
+        from tactile_deploy.training.ood_score import apply_to_export
+
+        for option, f in (("--onnx", args.onnx), ("--bundle", args.bundle)):
+            if not Path(f).is_file():
+                raise UsageError(f"{option} {f}: no such file")
+        try:
+            out = apply_to_export(Path(args.onnx), Path(args.bundle))
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        print(json.dumps(out, indent=2))
         return 0
 
     if args.command == "heldout":

@@ -56,7 +56,9 @@ class ModelCard(StrictModel):
         None, description="int8 variants: the maps the quantisation was calibrated on ({source, n_maps}); never "
         "the held-out maps of heldout_accuracy.",
     )
-    ood: dict = Field(description="Held-out quantiles of the reconstruction RMSE (mm) of the ood_score decoder.")
+    ood: dict = Field(description="What ood_score is and its held-out quantiles (mm): the reconstruction RMSE of the "
+                      "ood_score decoder as exported, or the size-normalised score (training/ood_score.py) with its "
+                      "fitted statistics.")
     ood_threshold_mm: float = Field(description="ood_score above this (held-out p99) = outside the training range.")
     limitations: list[str]
     intended_use: list[str] = []
@@ -175,6 +177,27 @@ def limitations(cfg: dict, variant: str) -> list[str]:
     return out
 
 
+def _ood_text(card: dict) -> str:
+    """The card's paragraph on ``ood_score``: the exported reconstruction RMSE, or the
+    size-normalised score of :mod:`tactile_deploy.training.ood_score`."""
+    ood, thr = card["ood"], card["ood_threshold_mm"]
+    if "formula" not in ood:
+        return ("`ood_score` is the RMS error (mm) of the reconstruction of the input depth map from the image "
+                "VAE's mean latent (decoder: see the variant above). Held-out quantiles: "
+                + ", ".join(f"{k.split('_')[-1]} {v:.4f} mm" for k, v in ood.items())
+                + f". Metadata `ood_threshold` = {thr:.4f} mm (held-out p99): above it a "
+                "map is less typical than 99 % of the held-out maps.")
+    st = ood["statistics"]
+    return (f"`ood_score` ({ood['score']}) is the coarse reconstruction error of the input depth map by the lean image "
+            f"decoder (the error averaged over {st['pool_px']} x {st['pool_px']} px blocks), normalised to a contact of "
+            f"median size: `{ood['formula']}`, with noise = {st['noise_mm']} mm, b = {st['exponent']:.4f} and "
+            f"d_ref = {st['d_ref_mm']:.4f} mm fitted on {st['source']}. Held-out quantiles ({ood['threshold_source']}): "
+            f"p50 {ood['score_mm_p50']:.4f} mm, p95 {ood['score_mm_p95']:.4f} mm, p99 {ood['score_mm_p99']:.4f} mm, "
+            f"max {ood['score_mm_max']:.4f} mm. Metadata `ood_threshold` = {thr:.4f} mm (held-out p99): above it a "
+            "map is less typical than 99 % of the held-out maps. The graph's score equals its float64 re-computation "
+            f"from the graph's reconstruction within {ood['graph_vs_numpy_max_abs_diff_mm']:.1e} mm.")
+
+
 def write_card(card: dict, json_path: Path, md_path: Path) -> None:
     from tactile_deploy.atomic import write_json, write_text
 
@@ -267,12 +290,7 @@ def render_markdown(card: dict) -> str:
         "",
         "## Out-of-distribution score",
         "",
-        "`ood_score` is the RMS error (mm) of the reconstruction of the input depth map from the image "
-        "VAE's mean latent (decoder: see the variant above). "
-        "Held-out quantiles: "
-        + ", ".join(f"{k.split('_')[-1]} {v:.4f} mm" for k, v in card["ood"].items())
-        + f". Metadata `ood_threshold` = {card['ood_threshold_mm']:.4f} mm (held-out p99): above it a "
-        "map is less typical than 99 % of the held-out maps.",
+        _ood_text(card),
         "",
         "## Training",
         "",
