@@ -94,6 +94,8 @@ class ContactResult:
     pressure_kpa : (n_plane,) float64 — normal contact pressure (compression > 0), kPa
     force_n : float — total normal force pressing the pad (compression > 0), N
     intrusion_mm : (n_plane,) float64 — indenter intrusion at each sensing node (-inf = none)
+    stick_mask : (n_plane,) bool — nodes in contact that stick (Coulomb friction,
+        :class:`tactile_deploy.fem.coulomb.CoulombSimulator`), or None for the other laws
     """
 
     rest_vertices_mm: np.ndarray
@@ -103,6 +105,7 @@ class ContactResult:
     pressure_kpa: np.ndarray
     force_n: float
     intrusion_mm: np.ndarray
+    stick_mask: np.ndarray | None = None
 
     @property
     def vertices_mm(self) -> np.ndarray:
