@@ -121,9 +121,6 @@ def simulate_command(
         _single(indenter, pressing_face, x, y, theta, depth, material, out, overwrite, model,
                 (slide_x, slide_y))
     else:
-        if friction == "coulomb":
-            fail("--friction coulomb is solved by the resolved single-contact solver; datasets "
-                 "(--n) use frictionless or stick contact on the pad mesh")
         if _given(ctx, {"model": "--model"}):
             fail("--model applies to one contact; datasets (--n) use the linear pad-mesh solver")
         single_only = _given(ctx, SINGLE_OPTIONS)

@@ -2,7 +2,8 @@
 
 Data flow of :func:`simulate_contact`::
 
-    check pose -> ContactSimulator.solve (FEM) -> DepthCamera.render -> ContactSample
+    check pose -> ContactSimulator.solve (FEM; CoulombSimulator for friction "coulomb")
+        -> DepthCamera.render -> ContactSample
 
 The ground-truth depth map ``depth_mm`` is rendered from the deformed 5,380-node pad mesh, so it
 is exactly consistent with ``vertices_mm`` (what a model is trained to predict). That mesh has a
@@ -119,7 +120,15 @@ class ContactSample:
 
 @functools.lru_cache(maxsize=8)
 def get_simulator(material: Material, pad: str = "gelslim") -> ContactSimulator:
-    """A cached simulator of the shipped pad for ``material`` (operators load from disk cache)."""
+    """A cached simulator of the shipped pad for ``material`` (operators load from disk cache).
+
+    Friction "coulomb": a :class:`~tactile_deploy.fem.coulomb.CoulombSimulator` sharing the
+    operators of the "stick" simulator of the same nu (one copy in memory for every mu)."""
+    if material.friction == "coulomb":
+        from tactile_deploy.fem.coulomb import CoulombSimulator
+
+        stick = get_simulator(Material(E_mpa=material.E_mpa, nu=material.nu, friction="stick"), pad)
+        return CoulombSimulator.sharing(stick, material)
     return ContactSimulator(load_pad(pad), material)
 
 
@@ -299,11 +308,15 @@ def simulate_contact(
         force_n=result.force_n,
         contact_mask=result.contact_mask,
         pressure_kpa=result.pressure_kpa.astype(np.float32),
+        stick_mask=result.stick_mask,
         metadata={
             **indenter_record(indenter),
             "pose": pose.model_dump(),
             "material": sim.material.model_dump(),
             "formulation": sim.formulation,
+            **({"stick_mask": "sensing nodes in contact that stick (friction below mu times the "
+                              "normal force); the others in contact slip"}
+               if result.stick_mask is not None else {}),
             "mesh_hash": mesh.content_hash,
             "n_nodes": mesh.n_nodes,
             "generator_version": GENERATOR_VERSION,
