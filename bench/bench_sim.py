@@ -8,7 +8,10 @@ Measures, in one run on this machine:
   ``--workers`` processes, in samples/s over ``--n`` random primitive contacts;
 * the baseline: the same contacts solved by the full sparse method (active-set iteration that
   re-factors the whole stiffness for every active set), on a few samples;
-* memory: operator bytes (shared by the workers), stored bytes per sample, peak RSS.
+* memory: operator bytes (shared by the workers), stored bytes per sample, peak RSS;
+* the friction laws: the contact solve alone (surface operators loaded, no depth camera), one
+  process with one BLAS thread, on the same ``--friction-contacts`` random primitive contacts,
+  frictionless, sticking and Coulomb (mu uniform in 0.3-1.5 per contact, one load step).
 
 The GPU figure comes from ``bench/bench_sim_gpu.py`` (results in ``bench/results/``) and is
 quoted next to it when present.
@@ -28,7 +31,51 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def run(n: int = 200, workers: int = 2, baseline_samples: int = 2, seed: int = 123) -> dict:
+def friction_law_rates(n: int, seed: int = 123) -> dict:
+    """Contacts/s of the contact solve (``simulator.solve``: forces and the volume's
+    displacements) per friction law on the same ``n`` random primitive contacts (nu = 0.48,
+    depth 0.2-1.2 mm, within 12 mm of the centre), one process, one BLAS thread."""
+    import math
+
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
+    from tactile_deploy.simulation.contact import ContactError, check_pose, get_simulator
+
+    names = tuple(list_indenters("primitive"))
+    rng = np.random.default_rng([seed, 7])
+    mesh = get_simulator(Material(nu=0.48)).mesh
+    contacts = []
+    while len(contacts) < n:
+        ind = get_indenter(names[int(rng.integers(len(names)))])
+        r, phi = 12.0 * math.sqrt(rng.random()), 2 * math.pi * rng.random()
+        pose = ContactPose(x_mm=r * math.cos(phi), y_mm=r * math.sin(phi),
+                           theta_deg=360 * rng.random(), depth_mm=float(rng.uniform(0.2, 1.2)))
+        mu = float(rng.uniform(0.3, 1.5))
+        try:
+            check_pose(mesh, ind, pose)
+        except ContactError:
+            continue
+        contacts.append((ind, pose, mu))
+    rates = {}
+    for law in ("frictionless", "stick", "coulomb"):
+        sims = [get_simulator(Material(nu=0.48, friction=law, mu=mu if law == "coulomb" else 1.0))
+                for _, _, mu in contacts]
+        sims[0].prepare()
+        with threadpool_limits(1):
+            t0 = time.perf_counter()
+            for (ind, pose, _), sim in zip(contacts, sims):
+                sim.solve(ind, pose)
+            rates[law] = n / (time.perf_counter() - t0)
+    return {"n_contacts": n, "contacts_per_s": rates,
+            "coulomb_vs_frictionless": rates["coulomb"] / rates["frictionless"],
+            "coulomb_vs_stick": rates["coulomb"] / rates["stick"]}
+
+
+def run(n: int = 200, workers: int = 2, baseline_samples: int = 2, seed: int = 123,
+        friction_contacts: int = 20) -> dict:
     import numpy as np
     from threadpoolctl import threadpool_limits
 
@@ -69,6 +116,7 @@ def run(n: int = 200, workers: int = 2, baseline_samples: int = 2, seed: int = 1
             fast = sim.solve(ind, pose)
             max_diff = max(max_diff, float(np.abs(ref.displacements_mm - fast.displacements_mm).max()))
     baseline_rate = 1.0 / float(np.mean(times))
+    laws = friction_law_rates(friction_contacts, seed) if friction_contacts else None
     operator_bytes = sim.compliance.nbytes + sim.greens.nbytes
     return {
         "n_samples": n,
@@ -83,6 +131,7 @@ def run(n: int = 200, workers: int = 2, baseline_samples: int = 2, seed: int = 1
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
         "formulation": sim.formulation,
         "friction": material.friction,
+        "friction_laws": laws,
     }
 
 
@@ -123,6 +172,22 @@ def markdown(result: dict, gpu: dict | None) -> str:
             f"{gpu.get('memory_per_sample_kb', float('nan')):.0f} kB GPU memory per sample in flight "
             f"(`bench/bench_sim_gpu.py`, results in `bench/results/sim_gpu_h100.json`)."
         )
+    laws = result.get("friction_laws")
+    if laws:
+        r = laws["contacts_per_s"]
+        lines += [
+            "",
+            f"Friction laws, the contact solve alone (forces + volume displacements, no depth camera), "
+            f"1 process, 1 BLAS thread, the same {laws['n_contacts']} random primitive contacts:",
+            "",
+            "| friction law | contacts/s | vs frictionless |",
+            "|---|---|---|",
+            f"| frictionless (exact active set, 1 dof per node) | {r['frictionless']:.1f} | 1x |",
+            f"| stick (exact active set, 3 dofs per node) | {r['stick']:.1f} | "
+            f"{r['stick'] / r['frictionless']:.2f}x |",
+            f"| Coulomb, mu 0.3-1.5 (semi-smooth Newton, `CoulombSimulator`) | {r['coulomb']:.1f} | "
+            f"{laws['coulomb_vs_frictionless']:.2f}x ({laws['coulomb_vs_stick']:.2f}x stick) |",
+        ]
     return "\n".join(lines)
 
 
@@ -132,11 +197,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--baseline-samples", type=int, default=2)
     parser.add_argument("--small", action="store_true", help="quick run (40 samples, 1 baseline sample)")
+    parser.add_argument("--friction-contacts", type=int, default=20,
+                        help="contacts of the friction-law comparison (0: skip it)")
     parser.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     args = parser.parse_args(argv)
     if args.small:
         args.n, args.baseline_samples = 40, 1
-    result = run(args.n, args.workers, args.baseline_samples)
+    result = run(args.n, args.workers, args.baseline_samples, friction_contacts=args.friction_contacts)
     gpu_path = ROOT / "bench" / "results" / "sim_gpu_h100.json"
     gpu = json.loads(gpu_path.read_text()) if gpu_path.exists() else None
     text = markdown(result, gpu)

@@ -6,8 +6,8 @@ Domains (fresh contacts simulated on the CPU with seeds no training run uses; po
 training: uniform in a disc of radius 12 mm, theta uniform):
 
 * ``primitives``: the training indenters, frictionless, depth 0.2-1.2 mm;
-* ``coulomb``: the training indenters with Coulomb friction, mu uniform in 0.3-1.5 (needs a
-  simulator that solves Coulomb contact; reported as not available otherwise);
+* ``coulomb``: the training indenters with Coulomb friction, mu uniform in 0.3-1.5 per contact
+  (:class:`tactile_deploy.fem.coulomb.CoulombSimulator`, one load step from rest as ``stick``);
 * ``stick``: the training indenters, the gel sticking to them;
 * ``large_strain``: the training indenters with the neo-Hookean large-deformation solve (effect
   ``hyperelastic``, strength 1), depth 0.6-1.2 mm;

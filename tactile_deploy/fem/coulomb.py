@@ -249,10 +249,15 @@ class CoulombSimulator(ContactSimulator):
         if stick.material.nu != material.nu:
             raise ValueError(f"material.nu={material.nu} differs from the shared simulator's "
                              f"nu={stick.material.nu}")
-        sim = cls(stick.mesh, material, stick.supports, "surface", stick.assembly,
-                  stick.formulation, stick.contact_nodes, stick._use_cache)
-        sim._K_q, sim._factor = stick._K_q, stick._factor
-        sim._C, sim._G = stick.compliance, stick.greens
+        if material.friction != "coulomb":
+            raise ValueError(f"CoulombSimulator solves friction 'coulomb', got material.friction="
+                             f"{material.friction!r}")
+        stick.prepare()
+        sim = cls.__new__(cls)
+        sim.__dict__.update(stick.__dict__)  # dof map, contact nodes, areas, operators: shared
+        sim.method = "surface"
+        sim.material = material
+        sim.last_iterations = 0
         return sim
 
     def solve(self, indenter, pose, press_steps: int = 1, slide_mm: tuple[float, float] = (0.0, 0.0),
