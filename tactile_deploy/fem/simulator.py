@@ -143,7 +143,8 @@ def surface_contact_forces(C: np.ndarray, delta: np.ndarray, block: int) -> np.n
 
 
 class ContactSimulator:
-    """Linear-elastic pad + rigid indenter, frictionless or sticking contact.
+    """Linear-elastic pad + rigid indenter, frictionless or sticking contact (Coulomb friction:
+    :class:`tactile_deploy.fem.coulomb.CoulombSimulator`, a subclass).
 
     Parameters
     ----------
