@@ -135,7 +135,8 @@ def markdown(results: list[dict]) -> str:
     for r in results:
         near, edge = r["ball"]["near"], r["edge"]
         region = r["shape"]["region"]
-        ok = [("balls 20 um", near[~edge].mean() <= 20), ("shapes 30 um", np.nanmean(region) <= 30)]
+        ok = [("balls 20 um", near[~edge].mean() <= 20), ("edges 20 um", near[edge].mean() <= 20),
+              ("shapes 30 um", np.nanmean(region) <= 30)]
         lines.append(
             f"| {r['family']} | {r['reader']} | {near[~edge].mean():.1f} ({near[~edge].max():.1f}) | "
             f"{near[edge].mean():.1f} | {r['mesh'].mean():.1f} ({r['mesh'].max():.1f}) | "

@@ -8,7 +8,8 @@ per-unit gain from the rig's known intrusions
 (:mod:`tactile_deploy.calibration.shading.readout_gain`); recorded presses have none. A gain from
 the ball's curvature inside each contact was tried and is not used: on the virtual DIGIT the
 read-out's cap inside 1 mm contacts (4 cells) is flatter than the ball (smoothed), so that gain
-came out 1.34 and made the depth 90 um RMS off where gain 1 is 15 um (docs/families.md).
+came out 1.34 and put new ball presses 90 um RMS off where gain 1 left them 15 um off
+(docs/families.md).
 """
 
 from __future__ import annotations
