@@ -65,19 +65,6 @@ def _graph_tensors(model):
     return {"recon": recon_tensor(model), "mu": mu[0].output[0], "hidden": mu[0].input[0]}
 
 
-def _session(model, extra=()):
-    import onnx
-    import onnxruntime as ort
-
-    m = onnx.ModelProto()
-    m.CopyFrom(model)
-    for e in extra:
-        m.graph.output.append(onnx.helper.make_tensor_value_info(e, onnx.TensorProto.FLOAT, None))
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = so.inter_op_num_threads = 1
-    return ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"])
-
-
 def auroc(inside, outside) -> float:
     """Area under the ROC curve of a score meant to be larger ``outside`` (Mann-Whitney U)."""
     import numpy as np
@@ -116,7 +103,7 @@ def main(argv=None) -> int:
     import torch
 
     from tactile_deploy.training.config import TrainConfig
-    from tactile_deploy.training.ood_score import FIT_SEED, HELD_SEED
+    from tactile_deploy.training.ood_score import FIT_SEED, HELD_SEED, graph_session
     from tactile_deploy.training.train import load_bundle
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -142,7 +129,7 @@ def main(argv=None) -> int:
     kind = {p.key: p.value for p in graph.metadata_props}.get("ood_score", "exported: RMS(recon - depth)")
     t = _graph_tensors(graph)
     names = ["ood_score", t["recon"], t["mu"], t["hidden"]]
-    sess = _session(graph, names[1:])
+    sess = graph_session(graph, names[1:])
     out = {}
     for k, x in sets.items():
         parts = [sess.run(names, {"depth": x[i:i + 64, None]}) for i in range(0, len(x), 64)]
@@ -241,8 +228,8 @@ def main(argv=None) -> int:
 
     timing = None
     if args.baseline:
-        base = _session(onnx.load(args.baseline))
-        s1 = _session(graph)
+        base = graph_session(onnx.load(args.baseline))
+        s1 = graph_session(graph)
         xs = [sets["inside"][i:i + 1, None] for i in range(16)]
         for s_ in (base, s1):
             for x in xs[:5]:

@@ -90,6 +90,18 @@ def small_sim():
     return sim
 
 
+@pytest.fixture(scope="session")
+def sims(small_sim):
+    """(the small pad's frictionless simulator, the same pad and material with sticking friction),
+    each prepared once: the friction tests' pair."""
+    from tactile_deploy.fem.simulator import ContactSimulator
+
+    stick = ContactSimulator(small_sim.mesh, small_sim.material.model_copy(
+        update={"friction": "stick"}), use_cache=False)
+    stick.prepare()
+    return small_sim, stick
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """One torch thread for a module: on a shared 2-core machine two OpenMP threads stall behind

@@ -19,16 +19,6 @@ CASES = {
 }
 
 
-@pytest.fixture(scope="module")
-def sims(small_sim):
-    from tactile_deploy.fem.simulator import ContactSimulator
-
-    stick = ContactSimulator(small_sim.mesh, small_sim.material.model_copy(
-        update={"friction": "stick"}), use_cache=False)
-    stick.prepare()
-    return small_sim, stick
-
-
 def coulomb(stick, mu):
     from tactile_deploy.fem.coulomb import CoulombSimulator
 

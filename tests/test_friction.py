@@ -11,16 +11,6 @@ from tactile_deploy.indenters import ContactPose, get_indenter
 from tactile_deploy.sensors.effects import get_effect
 
 
-@pytest.fixture(scope="module")
-def sims(small_sim):
-    from tactile_deploy.fem.simulator import ContactSimulator
-
-    stick = ContactSimulator(small_sim.mesh, small_sim.material.model_copy(
-        update={"friction": "stick"}), use_cache=False)
-    stick.prepare()
-    return small_sim, stick
-
-
 @pytest.mark.parametrize("indenter", ["sphere_r4", "flat_punch"])
 def test_friction_limits_are_frictionless_and_sticking_contact(sims, indenter):
     sim, stick = sims

@@ -144,7 +144,9 @@ def append_score(model, stats: OodStatistics):
     return m
 
 
-def _session(model, extra=()):
+def graph_session(model, extra=()):
+    """A one-thread CPU onnxruntime session of the in-memory ONNX ``model`` with the tensors named
+    in ``extra`` added as outputs (to read intermediate values)."""
     import onnx
     import onnxruntime as ort
 
@@ -160,7 +162,7 @@ def _session(model, extra=()):
 def run_graph(model, depth_mm: np.ndarray, batch: int = 64) -> dict[str, np.ndarray]:
     """{"vertices", "ood_score", "recon"} of ``model`` on maps (N, R, R) mm (onnxruntime, 1 thread)."""
     names = ["vertices", "ood_score", recon_tensor(model)]
-    sess = _session(model, names[2:])
+    sess = graph_session(model, names[2:])
     parts = [sess.run(names, {"depth": np.ascontiguousarray(depth_mm[i:i + batch, None], np.float32)})
              for i in range(0, len(depth_mm), batch)]
     return {k: np.concatenate([p[j] for p in parts]) for j, k in enumerate(("vertices", "ood_score", "recon"))}
