@@ -48,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as la
 
-from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports
 from tactile_deploy.fem.material import Material
 from tactile_deploy.fem.simulator import ContactResult, ContactSimulator
 from tactile_deploy.pad.mesh import PadMesh
@@ -203,6 +202,12 @@ def _slip_rows(M, rhs, CA, rows, f, u, delta, ref, mu, c_n, c_t) -> None:
         rhs[3 * r: 3 * r + 2] = nz[q] * t_hat[q] - eta_k[q] * z_k[q] - B @ (c_t[q] * ref[q])
 
 
+def _check_coulomb(material: Material) -> None:
+    if material.friction != "coulomb":
+        raise ValueError(f"CoulombSimulator solves friction 'coulomb', got material.friction="
+                         f"{material.friction!r}; use ContactSimulator for it")
+
+
 class CoulombSimulator(ContactSimulator):
     """Linear-elastic pad + rigid indenter with Coulomb friction of coefficient ``material.mu``.
 
@@ -217,25 +222,15 @@ class CoulombSimulator(ContactSimulator):
     last one. The result's ``stick_mask`` marks the nodes in contact that stick.
     """
 
-    def __init__(
-        self,
-        mesh: PadMesh,
-        material: Material = Material(friction="coulomb"),
-        supports: Supports = SENSOR_SUPPORTS,
-        method: str = "surface",
-        assembly: str = "auto",
-        formulation: str = "nodal_pressure",
-        contact_nodes: np.ndarray | None = None,
-        use_cache: bool = True,
-    ):
-        if material.friction != "coulomb":
-            raise ValueError(f"CoulombSimulator solves friction 'coulomb', got material.friction="
-                             f"{material.friction!r}; use ContactSimulator for it")
+    def __init__(self, mesh: PadMesh, material: Material = Material(friction="coulomb"), **options):
+        """``options``: those of :class:`ContactSimulator` (supports, assembly, formulation,
+        contact_nodes, use_cache; ``method`` "surface" only)."""
+        _check_coulomb(material)
+        method = options.get("method", "surface")
         if method != "surface":
             raise ValueError(f"CoulombSimulator solves on the surface compliance: method must be "
                              f"'surface', got {method!r}")
-        super().__init__(mesh, material.model_copy(update={"friction": "stick"}), supports, method,
-                         assembly, formulation, contact_nodes, use_cache)
+        super().__init__(mesh, material.model_copy(update={"friction": "stick"}), **options)
         self.material = material
         self.last_iterations = 0
 
@@ -249,9 +244,7 @@ class CoulombSimulator(ContactSimulator):
         if stick.material.nu != material.nu:
             raise ValueError(f"material.nu={material.nu} differs from the shared simulator's "
                              f"nu={stick.material.nu}")
-        if material.friction != "coulomb":
-            raise ValueError(f"CoulombSimulator solves friction 'coulomb', got material.friction="
-                             f"{material.friction!r}")
+        _check_coulomb(material)
         stick.prepare()
         sim = cls.__new__(cls)
         sim.__dict__.update(stick.__dict__)  # dof map, contact nodes, areas, operators: shared
@@ -268,11 +261,7 @@ class CoulombSimulator(ContactSimulator):
             raise ValueError(f"press_steps and slide_steps must be >= 1, got {press_steps}, "
                              f"{slide_steps}")
         slide = np.asarray(slide_mm, np.float64)
-        k = len(self.contact_nodes)
-        ref = np.zeros((k, 2))
-        ut = np.zeros((k, 2))
-        forces = np.zeros((k, 3))
-        stick = np.zeros(k, bool)
+        ut = np.zeros((len(self.contact_nodes), 2))   # tangential displacement after the last load
         loads = [(pose.model_copy(update={"depth_mm": pose.depth_mm * (j + 1) / press_steps}),
                   np.zeros(2)) for j in range(press_steps)]
         if np.any(slide != 0):
@@ -281,8 +270,7 @@ class CoulombSimulator(ContactSimulator):
                 loads.append((pose.model_copy(update={"x_mm": pose.x_mm + float(off[0]),
                                                       "y_mm": pose.y_mm + float(off[1])}),
                               slide / slide_steps))
-        delta = None
-        for p, move in loads:
+        for p, move in loads:   # press_steps >= 1: at least one load
             delta = self.intrusion(indenter, p)
             ref = ut + move
             forces, stick = self.surface_forces_coulomb(delta[self.contact_nodes], ref)
