@@ -49,6 +49,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 CONFIRM_SEED, NOVEL_CONFIRM_SEED = 5005, 13
 FLOOR_MM = 0.02
 
@@ -63,16 +64,6 @@ def _graph_tensors(model):
     if len(mu) != 1:
         raise ValueError(f"expected one Gemm with weight mu.weight (the latent mean), found {len(mu)}")
     return {"recon": recon_tensor(model), "mu": mu[0].output[0], "hidden": mu[0].input[0]}
-
-
-def auroc(inside, outside) -> float:
-    """Area under the ROC curve of a score meant to be larger ``outside`` (Mann-Whitney U)."""
-    import numpy as np
-    from scipy.stats import rankdata
-
-    ranks = rankdata(np.concatenate([inside, outside]))
-    n_in, n_out = len(inside), len(outside)
-    return float((ranks[n_in:].sum() - n_out * (n_out + 1) / 2) / (n_in * n_out))
 
 
 def _sets(spec, shared: Path):
@@ -102,6 +93,7 @@ def main(argv=None) -> int:
     import onnx
     import torch
 
+    from bench.bench_predictor import auroc
     from tactile_deploy.training.config import TrainConfig
     from tactile_deploy.training.ood_score import FIT_SEED, HELD_SEED, graph_session
     from tactile_deploy.training.train import load_bundle

@@ -56,16 +56,21 @@ class OodStatistics:
     source: str
 
 
-def score_numpy(recon_mm: np.ndarray, depth_mm: np.ndarray, stats: OodStatistics) -> np.ndarray:
-    """The score (N,) mm from the reconstruction and the input, both (N, 1, R, R) or (N, R, R) mm,
-    in float64 (the reference the graph is checked against)."""
+def _error_and_size(recon_mm, depth_mm, pool_px: int, noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(e_rms, d_eff), each (N,) mm float64, of the module docstring, from the reconstruction and
+    the input, both (N, 1, R, R) or (N, R, R) mm."""
     recon = np.asarray(recon_mm, np.float64).reshape(len(recon_mm), -1, *np.shape(recon_mm)[-2:])[:, 0]
     depth = np.asarray(depth_mm, np.float64).reshape(len(depth_mm), -1, *np.shape(depth_mm)[-2:])[:, 0]
     n, r, _ = depth.shape
-    p = stats.pool_px
+    p = pool_px
     e = (recon - depth).reshape(n, r // p, p, r // p, p).mean((2, 4))
-    e_rms = np.sqrt((e**2).mean((1, 2)) + stats.noise_mm**2)
-    d_eff = np.sqrt((depth**2).mean((1, 2)) + stats.noise_mm**2)
+    return np.sqrt((e**2).mean((1, 2)) + noise_mm**2), np.sqrt((depth**2).mean((1, 2)) + noise_mm**2)
+
+
+def score_numpy(recon_mm: np.ndarray, depth_mm: np.ndarray, stats: OodStatistics) -> np.ndarray:
+    """The score (N,) mm from the reconstruction and the input, both (N, 1, R, R) or (N, R, R) mm,
+    in float64 (the reference the graph is checked against)."""
+    e_rms, d_eff = _error_and_size(recon_mm, depth_mm, stats.pool_px, stats.noise_mm)
     return e_rms * (stats.d_ref_mm / d_eff) ** stats.exponent
 
 
@@ -197,11 +202,8 @@ def fit_statistics(model, spec) -> OodStatistics:
     if FIT_SEED == spec.seed:
         raise ValueError(f"FIT_SEED {FIT_SEED} is the training seed")
     maps = fitting_maps(spec, FIT_N, FIT_SEED)
-    recon = run_graph(model, maps)["recon"][:, 0].astype(np.float64)
-    p, r = POOL_PX, maps.shape[1]
-    e = (recon - maps).reshape(len(maps), r // p, p, r // p, p).mean((2, 4))
-    y = 0.5 * np.log((e**2).mean((1, 2)) + NOISE_MM**2)
-    x = 0.5 * np.log((maps.astype(np.float64) ** 2).mean((1, 2)) + NOISE_MM**2)
+    e_rms, d_eff = _error_and_size(run_graph(model, maps)["recon"], maps, POOL_PX, NOISE_MM)
+    y, x = np.log(e_rms), np.log(d_eff)
     slope = float(np.linalg.lstsq(np.c_[x, np.ones_like(x)], y, rcond=None)[0][0])
     return OodStatistics(
         exponent=slope, d_ref_mm=float(np.exp(np.median(x))), noise_mm=NOISE_MM, pool_px=POOL_PX,
