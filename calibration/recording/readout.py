@@ -19,21 +19,21 @@ from pathlib import Path
 import numpy as np
 
 from tactile_deploy.calibration.recording.errors import PlausibilityError
+from tactile_deploy.calibration.shading.evaluate import MIN_FIT_PIXELS, fit_region
 
-#: Fewest cells of the read-out's grid inside 0.8 contact radii for a press to be measured
-#: (the sphere fits' minimum).
-MIN_REGION_CELLS = 10
+#: Fewest cells of the read-out's grid inside 0.8 contact radii for a press to be measured: the
+#: sphere fits' minimum.
+MIN_REGION_CELLS = MIN_FIT_PIXELS
 
 
 def measurable(presses, region_fraction: float = 0.8) -> np.ndarray:
     """(N,) bool: the presses of a :class:`~tactile_deploy.calibration.shading.presses.PressSet`
-    (circles in grid cells) with at least ``MIN_REGION_CELLS`` cells of the grid inside
-    ``region_fraction`` of their contact circle (small or edge-cut contacts on the read-out's
-    coarser grid are not)."""
-    h, w = presses.shape
-    rows, cols = np.mgrid[0:h, 0:w]
-    return np.array([(np.hypot(cols - c[0], rows - c[1]) < region_fraction * c[2]).sum()
-                     >= MIN_REGION_CELLS for c in presses.circles])
+    (circles in grid cells) whose sphere-fit region (``region_fraction`` of the contact circle,
+    :func:`~tactile_deploy.calibration.shading.evaluate.fit_region`) holds at least
+    ``MIN_REGION_CELLS`` cells of the grid (small or edge-cut contacts on the read-out's coarser
+    grid do not)."""
+    return np.array([fit_region(presses.shape, c, region_fraction)[2].sum() >= MIN_REGION_CELLS
+                     for c in presses.circles])
 
 
 class ReadoutDepth:

@@ -48,6 +48,20 @@ class SphereFit:
     n_pixels: int
 
 
+#: Fewest pixels inside the fit region for a sphere fit.
+MIN_FIT_PIXELS = 10
+
+
+def fit_region(shape, circle, region_fraction: float = 0.8):
+    """(rows, cols, mask) of an image of ``shape`` (H, W): pixel indices (H, W) and the pixels
+    within ``region_fraction`` of ``circle`` (column, row, contact radius; px), where
+    :func:`fit_sphere` fits."""
+    h, w = shape
+    cx, cy, a = (float(v) for v in circle)
+    rows, cols = np.mgrid[0:h, 0:w]
+    return rows, cols, np.hypot(cols - cx, rows - cy) < region_fraction * a
+
+
 def fit_sphere(depth_mm, circle, mm_per_px: float, radius_mm: float | None = None,
                region_fraction: float = 0.8) -> SphereFit:
     """Fit depth = apex - (R - sqrt(R^2 - rho^2)) inside ``region_fraction`` of ``circle``.
@@ -57,11 +71,9 @@ def fit_sphere(depth_mm, circle, mm_per_px: float, radius_mm: float | None = Non
     None to fit it.
     """
     depth_mm = np.asarray(depth_mm, np.float64)
-    h, w = depth_mm.shape
     cx, cy, a = (float(v) for v in circle)
-    rows, cols = np.mgrid[0:h, 0:w]
-    m = np.hypot(cols - cx, rows - cy) < region_fraction * a
-    if m.sum() < 10:
+    rows, cols, m = fit_region(depth_mm.shape, circle, region_fraction)
+    if m.sum() < MIN_FIT_PIXELS:
         raise ValueError(f"circle {circle} leaves {int(m.sum())} pixels inside the image")
     x = (cols[m] - cx) * mm_per_px
     y = (rows[m] - cy) * mm_per_px
