@@ -66,11 +66,11 @@ def _check_args(args) -> None:
     from tactile_deploy.sensors.config import SensorConfigError
 
     try:
-        sensor_config(args.design)
+        design = sensor_config(args.design)
     except (UnknownSensorError, SensorConfigError, FileNotFoundError) as e:
         raise UsageError(f"--design: {e}") from None
     if args.out is None:
-        args.out = Path("exported") / f"{sensor_config(args.design).pad}_readout.onnx"
+        args.out = Path("exported") / f"{design.pad}_readout.onnx"
     out = args.out
     if not args.data_only:   # --data-only writes no model
         if out.suffix != ".onnx" or out.name.startswith("-"):
