@@ -206,3 +206,63 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
     with torch.no_grad():
         diff = (full(x)[1] - model(x)[1]).abs().max().item()
     assert diff < 1e-3
+
+
+def test_lateral_lift_residual_model_graph_and_adaptation_step_agree(pad, tmp_path):
+    """``surface.lateral = "lift_residual"``: the sensing nodes' x, y are the physics lift of their
+    u_z plus the decoder's residual, the same function in the eager model, the exported graph (ONNX,
+    run by onnxruntime) and the adaptation step; a surface variant (no lift) is refused."""
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.surface_to_volume import SurfaceToVolume
+    from tactile_deploy.onnx_runtime.session import make_session
+    from tactile_deploy.simulation.contact import get_simulator
+    from tactile_deploy.training.adaptation.step import AdaptationStep
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.errors import UsageError
+    from tactile_deploy.training.export import OUTPUTS, _onnx_export, deploy_module, lateral_lift_of, run_session
+    from tactile_deploy.training.train import build_model
+
+    cfg = TrainConfig.model_validate({
+        "run_dir": str(tmp_path / "run"),
+        "model": {"image": {"widths": [4, 8, 8, 16, 16], "hidden": 16, "latent": 16},
+                  "ood_decoder": {"channels": [4, 4, 4, 4, 4]},
+                  "surface": {"channels": [8, 8, 8, 8], "conv3x3_at": [8], "anchor": "moved",
+                              "lateral": "lift_residual"}},
+        "data": {"synthetic": {"n_samples": 4, "nu": 0.45}},
+        "image_vae": None, "mesh_vae": None, "lean_decoder": None, "projection": None, "finetune": None,
+        "surface": {"epochs": 1, "batch_size": 4, "lr": 1e-3},
+    })
+    torch.manual_seed(3)
+    model = build_model(cfg).eval()
+    assert model.lateral_adds and lateral_lift_of(model) is model.lateral_lift
+    with torch.no_grad():  # a residual far from zero, so that "added" and "replaced" differ
+        model.surface_decoder.head.weight.mul_(30.0)
+        model.surface_decoder.head.bias.normal_(0.0, 0.5)
+    yy, xx = np.mgrid[0:128, 0:128]
+    depth = np.stack([np.clip(0.8 - ((xx - c) ** 2 + (yy - 64) ** 2) / 300.0, 0.0, None) for c in (50, 70)])
+    depth = depth[:, None].astype(np.float32)
+    x = torch.as_tensor(depth)
+    with torch.no_grad():
+        _, d = model(x)
+        maps, z = model.image_vae.encoder.feature_maps(model.normalise_depth(x))
+        residual = model.norm.denormalise_displacement(model.surface_decoder(maps, z)).numpy()
+    d = d.numpy()
+    # the lift of the pad's own FEM at the data's nu (built here from SurfaceToVolume, not the model's module)
+    s2v = SurfaceToVolume(get_simulator(Material(nu=0.45)))
+    m = pad.n_plane
+    H_xy = s2v.H.reshape(pad.n_nodes, 3, m)[:m, :2]
+    lift_xy = np.einsum("iaj,bj->bia", H_xy, d[:, :m, 2])
+    np.testing.assert_allclose(d[:, :m, :2], residual[:, :m, :2] + lift_xy, atol=2e-5)
+    assert np.abs(residual[:, :m, :2]).max() > 10 * 2e-5 and np.abs(lift_xy).max() > 10 * 2e-5
+
+    graph = tmp_path / "g.onnx"
+    _onnx_export(deploy_module(model, "hybrid-fastood"), x, graph, ["depth"], OUTPUTS, optimize=False)
+    _, d_onnx, _ = run_session(make_session(graph, providers="cpu"), depth, batch=2)
+    np.testing.assert_allclose(d_onnx, d, atol=1e-4)
+    with torch.no_grad():
+        d_step = AdaptationStep(model, lateral=lateral_lift_of(model)).displacement(x).numpy()
+    np.testing.assert_allclose(d_step, d, atol=1e-4)
+    with pytest.raises(UsageError, match="trained on top of it.*export a hybrid variant"):
+        deploy_module(model, "surface-fastood")
+    with pytest.raises(ValueError, match="cannot run without it"):
+        model.use_lateral_lift(None)

@@ -103,6 +103,11 @@ class SurfaceDecoderConfig(StrictModel):
         "moves it (rest + predicted lateral displacement: the depth map shows the surface where it has moved to).",
     )
     half_extent_mm: float = Field(17.5, gt=0, description="The depth map spans +-this in x and y, mm.")
+    lateral: Literal["learned", "lift_residual"] = Field(
+        "learned", description="The sensing nodes' lateral (x, y) motion: predicted by the decoder (a hybrid "
+        "export replaces it by the physics lift's), or the physics lift of their u_z (frictionless, linear) plus "
+        "the decoder's residual, in training and in every export (what friction and large strain add to it).",
+    )
 
 
 class ModelConfig(StrictModel):

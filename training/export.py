@@ -156,6 +156,7 @@ class SurfaceDeployGraph(nn.Module):
     def __init__(self, model: Predictor, ood: str = "lean", lateral: nn.Module | None = None):
         super().__init__()
         self.lateral = lateral
+        self.lateral_adds = model.lateral_adds  # the lift under the decoder's lateral residual, not instead
         enc = copy.deepcopy(model.image_vae.encoder)
         img_dec = copy.deepcopy(model.ood_decoder if ood == "lean" else model.image_vae.decoder)
         s = model.norm.depth_scale_mm.detach()
@@ -187,7 +188,7 @@ class SurfaceDeployGraph(nn.Module):
         d = self.decoder(maps, z_image)  # mm (scale folded into the head)
         uz = self.anchor.read(depth, d, self.moved)
         if self.lateral is not None:  # the physics lift of the sensing surface's u_z
-            d = with_lateral(d, self.lateral(uz + d[:, : self.anchor.m, 2]))
+            d = with_lateral(d, self.lateral(uz + d[:, : self.anchor.m, 2]), add=self.lateral_adds)
         d = add_anchor(d, uz)
         recon = self.image_decoder(z_image)
         ood = torch.sqrt(torch.mean((recon - depth) ** 2, dim=(1, 2, 3)))
@@ -195,7 +196,10 @@ class SurfaceDeployGraph(nn.Module):
 
 
 def lateral_lift_of(model: Predictor):
-    """The lateral physics lift of the model's pad at its training data's Poisson ratio."""
+    """The lateral physics lift of the model's pad at its training data's Poisson ratio (the model's
+    own where it was trained with it, ``surface.lateral = "lift_residual"``)."""
+    if model.lateral_lift is not None and model.lateral_adds:
+        return model.lateral_lift
     from tactile_deploy.training.networks.lift import LateralLift
 
     return LateralLift.for_pad(getattr(model, "nu", 0.48))
@@ -223,6 +227,10 @@ def deploy_module(model: Predictor, variant: str) -> nn.Module:
         if not hasattr(model, "surface_decoder"):
             raise UsageError(f"variant {variant!r} needs a model with the surface decoder (model.surface in its "
                              f"config); this one has the latent decoders only: choose one of {', '.join(LATENT_VARIANTS)}")
+        if base == "surface" and model.lateral_adds:
+            raise UsageError(f"variant {variant!r} drops the lateral physics lift, but this model's decoder was "
+                             f"trained on top of it (surface.lateral = 'lift_residual'): export a hybrid variant "
+                             f"({', '.join(v for v in VARIANTS if v.startswith('hybrid'))})")
         return SurfaceDeployGraph(model, ood, lateral_lift_of(model) if base == "hybrid" else None).eval()
     scale_mask = (model.norm.displacement_scale_mm * model.norm.free_mask).detach().clone()
     if base == "naive":

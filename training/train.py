@@ -80,6 +80,10 @@ def build_model(cfg: TrainConfig) -> Predictor:
     model = Predictor(cfg.model, hierarchy, pad.vertices, pad.backplate_nodes)
     # the gel's Poisson ratio of the training data: the lateral physics lift of hybrid exports uses it
     model.nu = cfg.data.synthetic.nu if cfg.data.synthetic is not None else 0.48
+    if model.lateral_adds:  # the lift is the decoder's lateral prior, in training and in every export
+        from tactile_deploy.training.networks.lift import LateralLift
+
+        model.use_lateral_lift(LateralLift.for_pad(model.nu))
     return model
 
 

@@ -46,8 +46,10 @@ class AdaptationStep(nn.Module):
     def __init__(self, model: Predictor, decoder: str | None = None,
                  pixels_per_triangle: int = DEFAULT_PIXELS_PER_TRIANGLE, lateral: nn.Module | None = None):
         super().__init__()
-        #: the hybrid graphs' lateral physics lift (fixed), or None
+        #: the hybrid graphs' lateral physics lift (fixed), or None; added to the decoder's lateral
+        #: residual where the model was trained with it (``lateral_adds``), else replacing it
         self.lateral = lateral
+        self.lateral_adds = model.lateral_adds
         decoder = decoder or ("surface" if hasattr(model, "surface_decoder") else "lean")
         if decoder not in ("lean", "surface"):
             raise ValueError(f"decoder must be 'lean' or 'surface' (a deployed mesh decoder), got {decoder!r}")
@@ -99,7 +101,7 @@ class AdaptationStep(nn.Module):
         if self.lateral is not None:
             from tactile_deploy.training.networks.surface_decoder import with_lateral
 
-            d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]))
+            d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]), add=self.lateral_adds)
         return add_anchor(d, uz)
 
     def forward(self, depth_mm: torch.Tensor, target_mm: torch.Tensor, weight: torch.Tensor):

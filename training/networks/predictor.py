@@ -103,9 +103,12 @@ class Predictor(nn.Module):
                                                   cfg.image.resolution, lv.plane_xy_mm, lv.n_layers)
             self.anchor = SurfaceAnchor(lv.plane_xy_mm, cfg.image.resolution, cfg.surface.half_extent_mm)
             self.deploy_decoder = "surface"
-        #: With the surface decoder: the sensing nodes' lateral displacement from the physics lift of
-        #: their u_z instead of the decoder's (:meth:`use_lateral_lift`; the "hybrid" export variants).
+        #: With the surface decoder: the physics lift of the sensing nodes' u_z, giving their lateral
+        #: displacement instead of the decoder's (:meth:`use_lateral_lift`; the "hybrid" export
+        #: variants), or under it (``lateral_adds``: the decoder's residual is added; set by
+        #: ``build_model`` for ``surface.lateral = "lift_residual"``, where it is part of the model).
         self.lateral_lift = None
+        self.lateral_adds = cfg.surface is not None and cfg.surface.lateral == "lift_residual"
 
     # -- the deployed path, step by step -------------------------------------------------------
     def normalise_depth(self, depth_mm: torch.Tensor) -> torch.Tensor:
@@ -133,7 +136,8 @@ class Predictor(nn.Module):
         scale = self.norm.displacement_scale_mm
         uz = self.anchor.read(depth_mm, residual * scale, self.cfg.surface.anchor == "moved")
         if self.lateral_lift is not None:
-            residual = with_lateral(residual, self.lateral_lift(uz + residual[:, : self.n_plane, 2] * scale[2]) / scale[:2])
+            lift_xy = self.lateral_lift(uz + residual[:, : self.n_plane, 2] * scale[2]) / scale[:2]
+            residual = with_lateral(residual, lift_xy, add=self.lateral_adds)
         return add_anchor(residual, uz / scale[2])
 
     def use_lateral_lift(self, lift) -> None:
@@ -141,6 +145,9 @@ class Predictor(nn.Module):
         (:class:`tactile_deploy.training.networks.lift.LateralLift`: u_z -> x, y by the pad's FEM); None: the decoder's."""
         if lift is not None and not hasattr(self, "surface_decoder"):
             raise ValueError("the lateral lift completes the surface decoder; this model has none")
+        if lift is None and self.lateral_adds:
+            raise ValueError("this model's decoder was trained on top of the lateral lift "
+                             "(surface.lateral = 'lift_residual'): it cannot run without it")
         self.lateral_lift = lift
 
     def forward(self, depth_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

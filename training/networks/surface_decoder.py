@@ -78,10 +78,14 @@ def add_anchor(residual: torch.Tensor, uz: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, residual[:, m:]], dim=1)
 
 
-def with_lateral(residual: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-    """Residual displacement (B, n, 3) with the x, y of its first m nodes replaced by ``xy`` (B, m, 2)."""
+def with_lateral(residual: torch.Tensor, xy: torch.Tensor, add: bool = False) -> torch.Tensor:
+    """Residual displacement (B, n, 3) with the x, y of its first m nodes replaced by ``xy`` (B, m, 2)
+    (a decoder trained to predict the lateral motion itself, completed by the physics lift at export),
+    or with ``xy`` added to them (``add``: a decoder trained with the lift as its lateral prior,
+    ``SurfaceDecoderConfig.lateral = "lift_residual"``)."""
     m = xy.shape[1]
-    return torch.cat([torch.cat([xy, residual[:, :m, 2:]], dim=2), residual[:, m:]], dim=1)
+    top = residual[:, :m, :2] + xy if add else xy
+    return torch.cat([torch.cat([top, residual[:, :m, 2:]], dim=2), residual[:, m:]], dim=1)
 
 
 class SurfaceAnchor(nn.Module):
