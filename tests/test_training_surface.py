@@ -210,8 +210,9 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
 
 def test_lateral_lift_residual_model_graph_and_adaptation_step_agree(pad, tmp_path):
     """``surface.lateral = "lift_residual"``: the sensing nodes' x, y are the physics lift of their
-    u_z plus the decoder's residual, the same function in the eager model, the exported graph (ONNX,
-    run by onnxruntime) and the adaptation step; a surface variant (no lift) is refused."""
+    u_z plus the decoder's residual, the same function in the eager model, its training step, the
+    exported graph (ONNX, run by onnxruntime) and the adaptation step; a surface variant (no lift)
+    is refused."""
     from tactile_deploy.fem.material import Material
     from tactile_deploy.fem.surface_to_volume import SurfaceToVolume
     from tactile_deploy.onnx_runtime.session import make_session
@@ -220,7 +221,7 @@ def test_lateral_lift_residual_model_graph_and_adaptation_step_agree(pad, tmp_pa
     from tactile_deploy.training.config import TrainConfig
     from tactile_deploy.training.errors import UsageError
     from tactile_deploy.training.export import OUTPUTS, _onnx_export, deploy_module, lateral_lift_of, run_session
-    from tactile_deploy.training.train import build_model
+    from tactile_deploy.training.train import SurfaceTrainer, build_model
 
     cfg = TrainConfig.model_validate({
         "run_dir": str(tmp_path / "run"),
@@ -261,7 +262,10 @@ def test_lateral_lift_residual_model_graph_and_adaptation_step_agree(pad, tmp_pa
     np.testing.assert_allclose(d_onnx, d, atol=1e-4)
     with torch.no_grad():
         d_step = AdaptationStep(model, lateral=lateral_lift_of(model)).displacement(x).numpy()
+        pred = SurfaceTrainer(model)(model.normalise_depth(x), False)[0]
+        d_train = model.norm.denormalise_displacement(pred).numpy()
     np.testing.assert_allclose(d_step, d, atol=1e-4)
+    np.testing.assert_allclose(d_train, d, atol=1e-5)  # the training step learns the same function
     with pytest.raises(UsageError, match="trained on top of it.*export a hybrid variant"):
         deploy_module(model, "surface-fastood")
     with pytest.raises(ValueError, match="cannot run without it"):

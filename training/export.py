@@ -46,7 +46,7 @@ from tactile_deploy.onnx_runtime.quantize import quantize_int8
 from tactile_deploy.onnx_runtime.session import make_session
 from tactile_deploy.training.errors import UsageError
 from tactile_deploy.training.networks.predictor import Predictor
-from tactile_deploy.training.networks.surface_decoder import add_anchor, with_lateral
+from tactile_deploy.training.networks.surface_decoder import compose_surface
 
 VARIANTS = ("naive", "fused", "lean", "lean-fastood", "fused-int8", "lean-int8", "lean-int8-fastood",
             "surface", "surface-fastood", "surface-int8", "surface-int8-fastood",
@@ -185,11 +185,9 @@ class SurfaceDeployGraph(nn.Module):
             if not isinstance(layer, nn.Conv2d):
                 maps.append(h)
         z_image = self.mu(self.fc(h))
-        d = self.decoder(maps, z_image)  # mm (scale folded into the head)
-        uz = self.anchor.read(depth, d, self.moved)
-        if self.lateral is not None:  # the physics lift of the sensing surface's u_z
-            d = with_lateral(d, self.lateral(uz + d[:, : self.anchor.m, 2]), add=self.lateral_adds)
-        d = add_anchor(d, uz)
+        # mm (scale folded into the head); the lateral lift: the physics lift of the sensing surface's u_z
+        d = compose_surface(self.decoder(maps, z_image), depth, self.anchor, self.moved, None, self.lateral,
+                            self.lateral_adds)
         recon = self.image_decoder(z_image)
         ood = torch.sqrt(torch.mean((recon - depth) ** 2, dim=(1, 2, 3)))
         return self.rest + d, d, ood

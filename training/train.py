@@ -115,16 +115,17 @@ class SurfaceTrainer(torch.nn.Module):
         self.register_buffer("depth_scale_mm", model.norm.depth_scale_mm.detach().clone(), persistent=False)
         self.register_buffer("scale_mm", model.norm.displacement_scale_mm.detach().clone(), persistent=False)
         self.moved = model.cfg.surface.anchor == "moved"
+        # the lateral physics lift where the decoder is trained on top of it (surface.lateral = "lift_residual")
+        self.lateral = model.lateral_lift if model.lateral_adds else None
 
     def forward(self, x: torch.Tensor, sample: bool):
-        from tactile_deploy.training.networks.surface_decoder import add_anchor
+        from tactile_deploy.training.networks.surface_decoder import compose_surface
 
         maps, _ = self.encoder.feature_maps(x)
         h = self.encoder.fc(maps[-1])
         mu, logvar = self.encoder.mu(h), self.encoder.logvar(h)
-        residual = self.surface_decoder(maps, mu)
-        uz = self.anchor.read(x * self.depth_scale_mm, residual * self.scale_mm, self.moved)
-        pred = add_anchor(residual, uz / self.scale_mm[2])
+        pred = compose_surface(self.surface_decoder(maps, mu), x * self.depth_scale_mm, self.anchor, self.moved,
+                               self.scale_mm, self.lateral, lateral_adds=True)
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
         lean = self.ood_decoder(mu) if self.ood_decoder is not None else None
         return pred, self.image_decoder(z), mu, logvar, lean

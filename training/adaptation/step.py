@@ -88,7 +88,7 @@ class AdaptationStep(nn.Module):
         if self.kind == "lean":
             z = self.mu(self.fc(self.convs(x)))
             return self.decoder(self.projection(z)) * self.displacement_scale_mm
-        from tactile_deploy.training.networks.surface_decoder import add_anchor
+        from tactile_deploy.training.networks.surface_decoder import compose_surface
 
         maps = []
         for layer in self.convs:
@@ -97,12 +97,7 @@ class AdaptationStep(nn.Module):
                 maps.append(x)
         z = self.mu(self.fc(x))
         d = self.decoder(maps, z) * self.displacement_scale_mm
-        uz = self.anchor.read(depth_mm, d, self.moved)
-        if self.lateral is not None:
-            from tactile_deploy.training.networks.surface_decoder import with_lateral
-
-            d = with_lateral(d, self.lateral(uz + d[:, : self.n_plane, 2]), add=self.lateral_adds)
-        return add_anchor(d, uz)
+        return compose_surface(d, depth_mm, self.anchor, self.moved, None, self.lateral, self.lateral_adds)
 
     def forward(self, depth_mm: torch.Tensor, target_mm: torch.Tensor, weight: torch.Tensor):
         """(loss () mm^2, per-map mse (B,) mm^2, rendered (B, R, R) mm, displacement (B, n, 3)

@@ -130,15 +130,10 @@ class Predictor(nn.Module):
         sensing layer's z. ``maps``, ``z``: the encoder's feature maps and latent when computed."""
         if maps is None:
             maps, z = self.image_vae.encoder.feature_maps(self.normalise_depth(depth_mm))
-        from tactile_deploy.training.networks.surface_decoder import add_anchor, with_lateral
+        from tactile_deploy.training.networks.surface_decoder import compose_surface
 
-        residual = self.surface_decoder(maps, z)
-        scale = self.norm.displacement_scale_mm
-        uz = self.anchor.read(depth_mm, residual * scale, self.cfg.surface.anchor == "moved")
-        if self.lateral_lift is not None:
-            lift_xy = self.lateral_lift(uz + residual[:, : self.n_plane, 2] * scale[2]) / scale[:2]
-            residual = with_lateral(residual, lift_xy, add=self.lateral_adds)
-        return add_anchor(residual, uz / scale[2])
+        return compose_surface(self.surface_decoder(maps, z), depth_mm, self.anchor, self.cfg.surface.anchor == "moved",
+                               self.norm.displacement_scale_mm, self.lateral_lift, self.lateral_adds)
 
     def use_lateral_lift(self, lift) -> None:
         """Take the sensing nodes' lateral displacement from ``lift``

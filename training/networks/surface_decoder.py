@@ -88,6 +88,28 @@ def with_lateral(residual: torch.Tensor, xy: torch.Tensor, add: bool = False) ->
     return torch.cat([torch.cat([top, residual[:, :m, 2:]], dim=2), residual[:, m:]], dim=1)
 
 
+def compose_surface(residual: torch.Tensor, depth_mm: torch.Tensor, anchor: "SurfaceAnchor", moved: bool,
+                    scale_mm: torch.Tensor | None = None, lateral: nn.Module | None = None,
+                    lateral_adds: bool = False) -> torch.Tensor:
+    """The surface-anchored displacement (B, n, 3) from the decoder's residual (B, n, 3): the anchor
+    (u_z of the sensing nodes read off ``depth_mm`` (B, 1, R, R) mm, where the residual moved them
+    if ``moved``) on the sensing layer's z; with ``lateral`` (the physics lift u_z (B, m) mm ->
+    x, y (B, m, 2) mm) the sensing layer's x, y replaced by the lift's, or added to it
+    (``lateral_adds``). ``scale_mm`` (3,): the residual and the result are in units of the
+    displacement scale (training); None: both in mm (the exported graphs). The one composition of
+    the model, its training step, its exported graph and its adaptation step."""
+    if scale_mm is None:
+        uz = anchor.read(depth_mm, residual, moved)
+        if lateral is not None:
+            residual = with_lateral(residual, lateral(uz + residual[:, : anchor.m, 2]), add=lateral_adds)
+        return add_anchor(residual, uz)
+    uz = anchor.read(depth_mm, residual * scale_mm, moved)
+    if lateral is not None:
+        lift_xy = lateral(uz + residual[:, : anchor.m, 2] * scale_mm[2]) / scale_mm[:2]
+        residual = with_lateral(residual, lift_xy, add=lateral_adds)
+    return add_anchor(residual, uz / scale_mm[2])
+
+
 class SurfaceAnchor(nn.Module):
     """depth (B, 1, R, R) mm -> u_z (B, m) mm of the sensing nodes: minus the bilinear sample of
     the depth map at each node's rest (x, y). Fixed (buffers only).
