@@ -114,10 +114,10 @@ class SurfaceAnchor(nn.Module):
     """depth (B, 1, R, R) mm -> u_z (B, m) mm of the sensing nodes: minus the bilinear sample of
     the depth map at each node's rest (x, y). Fixed (buffers only).
 
-    Computed as one Gather of rows: the flattened map and its copies shifted by 1, R and R + 1
-    pixels stacked as 4 columns, so that row ``r0 * R + c0`` holds a node's 4 taps (a gather of
-    1 row per node instead of 4 values). Taps past the last row or column are folded back (base
-    moved in by one, fraction 1), so edges clamp as in :func:`bilinear_taps`."""
+    Computed as one Gather of the flattened map: the 4 taps of a node are pixels ``k``, ``k + 1``,
+    ``k + R`` and ``k + R + 1`` of its base pixel ``k = r0 * R + c0``, with the base moved in by one
+    (fraction 1) at the last row or column, so that edges clamp as in :func:`bilinear_taps` and no
+    tap lies past the map."""
 
     def __init__(self, sensing_xy_mm: np.ndarray, resolution: int, half_extent_mm: float):
         super().__init__()
@@ -132,7 +132,11 @@ class SurfaceAnchor(nn.Module):
         self.m = len(xy)
         self.resolution = int(resolution)
         self.pitch_mm = p
-        self.register_buffer("base", torch.as_tensor((r0 * resolution + c0).astype(np.int64)), persistent=False)
+        base = torch.as_tensor((r0 * resolution + c0).astype(np.int64))
+        #: flat pixel offsets of the 4 taps from the base pixel: itself, right, below, below-right
+        self.register_buffer("tap_offsets", torch.as_tensor([0, 1, resolution, resolution + 1]), persistent=False)
+        #: (m * 4,) flat pixels of every node's 4 taps, node-major
+        self.register_buffer("taps", (base[:, None] + self.tap_offsets).reshape(-1), persistent=False)
         self.register_buffer("weights", torch.as_tensor(w), persistent=False)
         # continuous pixel coordinates of the rest positions (unclamped), for reads where nodes moved
         self.register_buffer("col_rest", torch.as_tensor((xy[:, 0] + half_extent_mm) / p - 0.5, dtype=torch.float32),
@@ -140,16 +144,10 @@ class SurfaceAnchor(nn.Module):
         self.register_buffer("row_rest", torch.as_tensor((half_extent_mm - xy[:, 1]) / p - 0.5, dtype=torch.float32),
                              persistent=False)
 
-    def _taps(self, depth_mm: torch.Tensor) -> torch.Tensor:
-        """(B, R * R, 4): pixel k and its neighbours right, below, below-right (0 past the end)."""
-        r = self.resolution
-        flat = torch.nn.functional.pad(depth_mm.reshape(depth_mm.shape[0], r * r), (0, r + 1))
-        return torch.stack([flat[:, : r * r], flat[:, 1: r * r + 1], flat[:, r: r * r + r],
-                            flat[:, r + 1: r * r + r + 1]], 2)
-
     def forward(self, depth_mm: torch.Tensor) -> torch.Tensor:
-        v = torch.index_select(self._taps(depth_mm), 1, self.base)  # (B, m, 4)
-        return -(v * self.weights).sum(-1)
+        r = self.resolution
+        v = torch.index_select(depth_mm.reshape(depth_mm.shape[0], r * r), 1, self.taps)  # (B, m * 4)
+        return -(v.reshape(-1, self.m, 4) * self.weights).sum(-1)
 
     def moved(self, depth_mm: torch.Tensor, dxy_mm: torch.Tensor) -> torch.Tensor:
         """u_z (B, m) mm: minus the bilinear read at rest (x, y) + ``dxy_mm`` (B, m, 2), edges
@@ -161,8 +159,9 @@ class SurfaceAnchor(nn.Module):
         c0 = torch.floor(col).clamp(max=r - 2.0)
         r0 = torch.floor(row).clamp(max=r - 2.0)
         fc, fr = col - c0, row - r0
-        index = (r0 * r + c0).to(torch.int64) + torch.arange(b, device=depth_mm.device)[:, None] * (r * r)
-        v = torch.index_select(self._taps(depth_mm).reshape(b * r * r, 4), 0, index.reshape(-1)).reshape(b, -1, 4)
+        base = (r0 * r + c0).to(torch.int64) + torch.arange(b, device=depth_mm.device)[:, None] * (r * r)
+        taps = (base[..., None] + self.tap_offsets).reshape(-1)  # (B * m * 4,) into the flattened batch
+        v = torch.index_select(depth_mm.reshape(b * r * r), 0, taps).reshape(b, -1, 4)
         w = torch.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], -1)
         return -(v * w).sum(-1)
 
@@ -201,7 +200,11 @@ class SurfaceDecoder(nn.Module):
         # head channel (sub-pixel s = (r % sub) * sub + c % sub) * out_channels + k, at feature pixel (r // sub, c // sub)
         s = (r % self.sub) * self.sub + (c % self.sub)
         fp = (r // self.sub) * self.feature_side + (c // self.sub)
-        self.register_buffer("read", torch.as_tensor(fp * self.sub**2 + s), persistent=False)
+        # head row (feature pixel * sub^2 + sub-pixel) of each in-plane point i; as rows of 3 values
+        # (one axis triple per layer), node layer * m + i (the pad's order) reads row head_row * L + layer
+        L = self.n_free_layers
+        rows = torch.as_tensor(fp * self.sub**2 + s)[None, :] * L + torch.arange(L)[:, None]
+        self.register_buffer("read_rows", rows.reshape(-1), persistent=False)
         self.latent_start = cfg.latent_start
         c0 = cfg.channels[0]
         self.fc = nn.Linear(latent, c0 * 16) if cfg.latent_start else None
@@ -237,8 +240,7 @@ class SurfaceDecoder(nn.Module):
         f = self.features(maps, z)
         f = f.permute(0, 2, 3, 1).reshape(b, self.feature_side**2, -1)  # pixel-major (B, F * F, C)
         # head: channel s * K + k of pixel p -> row p * sub^2 + s, column k (K = 3 * free layers)
-        o = self.head(f).reshape(b, self.feature_side**2 * self.sub**2, self.out_channels)
-        g = torch.index_select(o, 1, self.read)  # (B, m, K): one row per in-plane point
-        d = g.reshape(b, self.n_plane, self.n_free_layers, 3).transpose(1, 2)
-        d = d.reshape(b, self.n_free_layers * self.n_plane, 3)
+        # channel k = 3 * layer + axis of row p: row p * L + layer of the (B, rows * L, 3) view
+        o = self.head(f).reshape(b, self.feature_side**2 * self.sub**2 * self.n_free_layers, 3)
+        d = torch.index_select(o, 1, self.read_rows)  # (B, L * m, 3): the free nodes in the pad's order
         return torch.cat([d, d.new_zeros(b, self.n_plane, 3)], dim=1)
