@@ -1,9 +1,12 @@
-"""Static int8 quantisation of an ONNX graph, in one place.
+"""int8 quantisation of an ONNX graph, in one place.
 
-QDQ format, unsigned 8-bit activations and signed 8-bit per-channel weights, MinMax calibration
-on example inputs; only the named nodes are quantised (everything else stays fp32), and the fp32
-graph's metadata is kept. onnxruntime fuses the QDQ pairs into integer kernels. Needs the
-``onnx`` package (the ``train`` or ``adapt`` extra).
+Static (:func:`quantize_int8`): QDQ format, unsigned 8-bit activations and signed 8-bit
+per-channel weights, MinMax calibration on example inputs; onnxruntime fuses the QDQ pairs into
+integer kernels. An activation outside the calibration maps' range saturates.
+Dynamic (:func:`quantize_int8_dynamic`, MatMul with constant weights): signed 8-bit per-channel
+weights, the activation's range measured on every call (nothing saturates), fp32 output.
+Only the named nodes are quantised (everything else stays fp32), and the fp32 graph's metadata is
+kept. Needs the ``onnx`` package (the ``train`` or ``adapt`` extra).
 """
 
 from __future__ import annotations
@@ -62,6 +65,35 @@ def quantize_int8(fp32_path: str | os.PathLike, out_path: str | os.PathLike,
                 src = onnx.load(str(fp32_path), load_external_data=False)
                 q = onnx.load(str(tmp))
                 set_metadata(q, {p.key: p.value for p in src.metadata_props}, replace=True)
+                onnx.save(q, str(tmp))
+    finally:
+        logging.getLogger().setLevel(level)
+    return out_path
+
+
+def quantize_int8_dynamic(fp32_path: str | os.PathLike, out_path: str | os.PathLike, nodes: Sequence[str],
+                          keep_metadata: bool = True) -> Path:
+    """Quantise the MatMul ``nodes`` of the graph ``fp32_path`` (constant weights) dynamically and
+    write it to ``out_path`` (atomic): int8 per-channel weights, each call's activation range."""
+    onnx = require_onnx()
+    from onnxruntime.quantization import QuantType, quantize_dynamic  # onnxruntime's optional quantisation tools
+
+    nodes = list(nodes)
+    graph = onnx.load(str(fp32_path), load_external_data=False)
+    ops = {n.name: n.op_type for n in graph.graph.node}
+    wrong = [f"{n} ({ops.get(n, 'absent')})" for n in nodes if ops.get(n) != "MatMul"]
+    if not nodes or wrong:
+        raise ValueError(f"{fp32_path}: dynamic quantisation takes MatMul nodes; got {', '.join(wrong) or 'none'}")
+    out_path = Path(out_path)
+    level = logging.getLogger().level
+    logging.getLogger().setLevel(logging.ERROR)
+    try:
+        with atomic_path(out_path) as tmp:
+            quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QInt8, per_channel=True,
+                             nodes_to_quantize=nodes, extra_options={"MatMulConstBOnly": True})
+            if keep_metadata:
+                q = onnx.load(str(tmp))
+                set_metadata(q, {p.key: p.value for p in graph.metadata_props}, replace=True)
                 onnx.save(q, str(tmp))
     finally:
         logging.getLogger().setLevel(level)
