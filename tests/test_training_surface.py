@@ -270,3 +270,55 @@ def test_lateral_lift_residual_model_graph_and_adaptation_step_agree(pad, tmp_pa
         deploy_module(model, "surface-fastood")
     with pytest.raises(ValueError, match="cannot run without it"):
         model.use_lateral_lift(None)
+
+
+def test_hybrid_int8_lift_follows_presses_larger_than_any_seen(pad, tmp_path):
+    """The hybrid graphs quantise the lateral lift dynamically (each call's range of u_z): on a
+    press far larger and deeper than anything a static calibration saw, the int8 graph stays on its
+    fp32 graph, where a statically calibrated lift saturates."""
+    from tactile_deploy.onnx_runtime.quantize import quantize_int8
+    from tactile_deploy.onnx_runtime.session import make_session
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.export import OUTPUTS, _onnx_export, deploy_module, int8_nodes, quantise, run_session
+    from tactile_deploy.training.train import build_model
+
+    import onnx
+
+    cfg = TrainConfig.model_validate({
+        "run_dir": str(tmp_path / "run"),
+        "model": {"image": {"widths": [4, 8, 8, 16, 16], "hidden": 16, "latent": 16},
+                  "ood_decoder": {"channels": [4, 4, 4, 4, 4]},
+                  "surface": {"channels": [8, 8, 8, 8], "conv3x3_at": [8], "anchor": "moved"}},
+        "data": {"synthetic": {"n_samples": 4}},
+        "image_vae": None, "mesh_vae": None, "lean_decoder": None, "projection": None, "finetune": None,
+        "surface": {"epochs": 1, "batch_size": 4, "lr": 1e-3},
+    })
+    torch.manual_seed(5)
+    model = build_model(cfg).eval()
+    yy, xx = np.mgrid[0:128, 0:128]
+
+    def press(radius_px: float, depth_mm: float) -> np.ndarray:
+        return np.clip(depth_mm * (1 - ((xx - 64) ** 2 + (yy - 64) ** 2) / radius_px**2), 0, None).astype(np.float32)
+
+    small = np.stack([press(8, 0.3), press(10, 0.4)])[:, None]  # what a static calibration would see
+    large = press(45, 1.3)[None, None]  # a 25 mm wide, 1.3 mm deep press
+    fp32 = tmp_path / "fp32.onnx"
+    _onnx_export(deploy_module(model, "hybrid-fastood"), torch.as_tensor(small), fp32, ["depth"], OUTPUTS,
+                 optimize=False)
+    dynamic, static = tmp_path / "dynamic.onnx", tmp_path / "static.onnx"
+    quantise(fp32, dynamic, None, variant="hybrid-int8-fastood")
+    quantize_int8(fp32, static, small, int8_nodes(onnx.load(str(fp32)), "hybrid-int8-fastood"))
+    ops = {n.op_type for n in onnx.load(str(dynamic)).graph.node}
+    assert "DynamicQuantizeLinear" in ops and "QuantizeLinear" not in ops
+
+    def lateral(path):
+        return run_session(make_session(path, providers="cpu"), large, batch=1)[1][0, :pad.n_plane, :2]
+
+    ref = lateral(fp32)
+    scale = np.abs(ref).max()
+    assert scale > 0.1  # mm: a lateral motion worth quantising
+    # RMS over the sensing nodes, relative to the fp32 lateral motion's (measured: 0.05 dynamic, the
+    # int8 weights' rounding summed over a press this wide; 0.91 static)
+    ref_rms = np.sqrt(np.mean(ref**2))
+    assert np.sqrt(np.mean((lateral(dynamic) - ref) ** 2)) < 0.10 * ref_rms
+    assert np.sqrt(np.mean((lateral(static) - ref) ** 2)) > 0.5 * ref_rms  # the saturation the dynamic range avoids
