@@ -31,7 +31,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out_path: str | os.PathLike,
         (for the mesh model: depth maps (K, 1, 128, 128) mm).
     keep_metadata : copy the fp32 graph's metadata entries onto the quantised one.
     """
-    onnx = require_onnx()
+    require_onnx()
     from onnxruntime.quantization import (  # onnxruntime's optional quantisation tools
         CalibrationDataReader,
         QuantFormat,
@@ -53,14 +53,23 @@ def quantize_int8(fp32_path: str | os.PathLike, out_path: str | os.PathLike,
         def get_next(self):
             return next(self.it, None)
 
+    return _write_quantised(
+        fp32_path, out_path, keep_metadata,
+        lambda tmp: quantize_static(str(fp32_path), str(tmp), Reader(), quant_format=QuantFormat.QDQ,
+                                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                                    per_channel=True, nodes_to_quantize=nodes))
+
+
+def _write_quantised(fp32_path, out_path, keep_metadata: bool, quantise) -> Path:
+    """Run ``quantise(tmp_path)`` into a temporary file renamed to ``out_path`` at the end (the
+    quantiser's per-node INFO logging silenced), with the fp32 graph's metadata if ``keep_metadata``."""
+    onnx = require_onnx()
     out_path = Path(out_path)
     level = logging.getLogger().level
     logging.getLogger().setLevel(logging.ERROR)  # the quantiser logs every node at INFO
     try:
         with atomic_path(out_path) as tmp:
-            quantize_static(str(fp32_path), str(tmp), Reader(), quant_format=QuantFormat.QDQ,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            per_channel=True, nodes_to_quantize=nodes)
+            quantise(tmp)
             if keep_metadata:
                 src = onnx.load(str(fp32_path), load_external_data=False)
                 q = onnx.load(str(tmp))
@@ -84,17 +93,7 @@ def quantize_int8_dynamic(fp32_path: str | os.PathLike, out_path: str | os.PathL
     wrong = [f"{n} ({ops.get(n, 'absent')})" for n in nodes if ops.get(n) != "MatMul"]
     if not nodes or wrong:
         raise ValueError(f"{fp32_path}: dynamic quantisation takes MatMul nodes; got {', '.join(wrong) or 'none'}")
-    out_path = Path(out_path)
-    level = logging.getLogger().level
-    logging.getLogger().setLevel(logging.ERROR)
-    try:
-        with atomic_path(out_path) as tmp:
-            quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QInt8, per_channel=True,
-                             nodes_to_quantize=nodes, extra_options={"MatMulConstBOnly": True})
-            if keep_metadata:
-                q = onnx.load(str(tmp))
-                set_metadata(q, {p.key: p.value for p in graph.metadata_props}, replace=True)
-                onnx.save(q, str(tmp))
-    finally:
-        logging.getLogger().setLevel(level)
-    return out_path
+    return _write_quantised(
+        fp32_path, out_path, keep_metadata,
+        lambda tmp: quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QInt8, per_channel=True,
+                                     nodes_to_quantize=nodes, extra_options={"MatMulConstBOnly": True}))
