@@ -75,7 +75,7 @@ def test_the_gate_judges_the_written_model_against_the_start_and_the_active_one(
     """The figures that decide and that are printed are those of model.onnx (int8, as `run` uses
     it), computed independently here; a --from-family run worse than the active version writes
     nothing and says so with both figures."""
-    from tactile_deploy.adapt.step import StepProgram, evaluate, vae_filter
+    from tactile_deploy.adapt.step import StepProgram, adaptation_target, evaluate
     from tactile_deploy.adapt.workflow import (
         collect_depths,
         evaluate_model,
@@ -95,7 +95,9 @@ def test_the_gate_judges_the_written_model_against_the_start_and_the_active_one(
     depth, _ = collect_depths(plugin, parse_source("demo"), max_frames=200, log=lambda m: None)
     step = StepProgram.load(STEP)
     _, ho = split_blocks(len(depth), 0.2, 10, 0)
-    d, t, w, pad = depth[ho], vae_filter(step, depth[ho]), view_weight(plugin), load_pad()
+    assert report["settings"]["use_filter"] is False  # the shipped surface-anchored graph: towards the map itself
+    t, _ = adaptation_target(step, depth[ho])  # the design's default
+    d, w, pad = depth[ho], view_weight(plugin), load_pad()
     family = evaluate_model(FAMILY, pad, d, t, w)
     adapted = evaluate_model(plugin_copy / "adapted" / "v1" / "model.onnx", pad, d, t, w)
     assert report["heldout_rmse_before_mm"] == pytest.approx(family.rmse_mm, abs=1e-9)

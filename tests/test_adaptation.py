@@ -344,3 +344,20 @@ def test_runtime_adapts_without_the_training_package(tiny, tmp_path):
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert res.returncode == 0 and res.stdout.strip() == "ok 2", res.stderr[-3000:]
     assert (tmp_path / "a.onnx").stat().st_size > 0
+
+
+def test_adaptation_target_follows_the_design():
+    """The surface-anchored graphs adapt towards the measured map I, the latent design towards VAE(I);
+    an explicit choice overrides the design's."""
+    from types import SimpleNamespace
+
+    from tactile_deploy.adapt.step import adaptation_target, filters_by_default
+
+    def step(variant):
+        return SimpleNamespace(card=SimpleNamespace(family_variant=variant))
+
+    assert not filters_by_default(step("hybrid-int8-fastood")) and not filters_by_default(step("surface-fastood"))
+    assert filters_by_default(step("lean-int8-fastood")) and filters_by_default(step("fused"))
+    depth = np.random.default_rng(0).random((2, 128, 128)).astype(np.float32)
+    target, filtered = adaptation_target(step("hybrid-int8-fastood"), depth)
+    assert not filtered and np.array_equal(target, depth) and target is not depth

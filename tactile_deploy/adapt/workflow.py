@@ -40,8 +40,8 @@ from tactile_deploy.adapt.step import (
     History,
     StepProgram,
     adapt,
+    adaptation_target,
     evaluate,
-    vae_filter,
 )
 from tactile_deploy.adapt.weights import (
     adaptation_metadata,
@@ -75,7 +75,8 @@ MIN_HELD_OUT = 5
 @dataclass
 class AdaptOptions:
     """steps, batch_size, lr: Adam; held_out: share of frames kept aside (in blocks of ``block``
-    consecutive frames); use_filter: target VAE(I) (False: I, the ablation); start: "active"
+    consecutive frames); use_filter: target VAE(I) (True) or I (False), None: the design's default
+    (:func:`tactile_deploy.adapt.step.filters_by_default`: I for the surface-anchored graphs); start: "active"
     (the plugin's active adapted model, else the family's) or "family"; write: create a version
     when the held-out RMSE improved."""
 
@@ -84,7 +85,7 @@ class AdaptOptions:
     lr: float = 1e-4
     held_out: float = 0.2
     block: int = 10
-    use_filter: bool = True
+    use_filter: bool | None = None
     device: str = "cpu"
     seed: int = 0
     start: str = "active"
@@ -247,9 +248,9 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
     weight = view_weight(plugin)
     fam = plugin.manifest.family
     pad = load_pad(fam.pad, fam.pad_version)
-    target = vae_filter(step, depth) if options.use_filter else depth.copy()
+    target, use_filter = adaptation_target(step, depth, options.use_filter)
     log(f"{len(depth)} frames: {len(tr)} to adapt on, {len(ho)} held out; starting from the {start_model}; "
-        f"target: {'VAE(depth)' if options.use_filter else 'depth (no filter)'}")
+        f"target: {'VAE(depth)' if use_filter else 'depth (no filter)'}")
     before_fp32 = evaluate(step, depth[ho], target[ho], weight)
     settings = AdaptSettings(steps=options.steps, batch_size=options.batch_size, lr=options.lr, seed=options.seed)
     history = adapt(step, depth[tr], target[tr], weight, settings, progress)
@@ -259,7 +260,7 @@ def adapt_plugin(plugin, depth_mm: np.ndarray, options: AdaptOptions, step_folde
         "step_card": {"name": card.name, "sha256": card.files["step"].sha256, "torch": card.versions.get("torch")},
         "frames": {"adapt": int(len(tr)), "held_out": int(len(ho))},
         "settings": {"steps": options.steps, "batch_size": options.batch_size, "lr": options.lr,
-                     "use_filter": options.use_filter, "device": options.device, "seed": options.seed},
+                     "use_filter": use_filter, "device": options.device, "seed": options.seed},
         "heldout_rmse_before_fp32_mm": before_fp32.rmse_mm, "heldout_rmse_after_fp32_mm": after_fp32.rmse_mm,
         "train_loss_first_mm2": history.loss_mm2[0], "train_loss_last_mm2": history.loss_mm2[-1],
         "adapt_seconds": history.seconds, "steps_per_s": options.steps / max(history.seconds, 1e-9),

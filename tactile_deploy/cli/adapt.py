@@ -36,8 +36,10 @@ def adapt_command(
     held_out: float = typer.Option(0.2, "--held-out", help="Share of frames kept aside to judge the adaptation "
                                    "(0.01 to 0.9)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda (torch device)."),
-    no_filter: bool = typer.Option(False, "--no-filter", help="Match the raw depth map instead of the image VAE's "
-                                   "reconstruction (the paper's ablation; usually worse)."),
+    use_filter: bool | None = typer.Option(
+        None, "--filter/--no-filter", help="Adapt towards the image VAE's reconstruction of each depth map (--filter, "
+        "the paper's target) or towards the depth map itself (--no-filter). Default: the model's design: the "
+        "surface-anchored graphs (the shipped GelSlim model) towards the map itself, the latent design towards VAE."),
     from_family: bool = typer.Option(False, "--from-family", help="Start from the family model, not the active "
                                      "adapted one."),
     step_dir: Path | None = typer.Option(None, "--step", help="Adaptation step folder (default: <family model>_adapt "
@@ -100,7 +102,7 @@ def adapt_command(
         from tactile_deploy.adapt.workflow import (AdaptOptions, adapt_plugin, collect_depths, prepare_adaptation,
                                                    summary_lines)
 
-        options = AdaptOptions(steps=steps, batch_size=batch_size, lr=lr, held_out=held_out, use_filter=not no_filter,
+        options = AdaptOptions(steps=steps, batch_size=batch_size, lr=lr, held_out=held_out, use_filter=use_filter,
                                device=device, seed=seed, start="family" if from_family else "active", write=not dry_run)
         step = prepare_adaptation(plugin, options, step_dir)  # every check that needs no frames, first
         depth, info = collect_depths(plugin, config, from_manifest, max_frames, log=err_console.print)
