@@ -9,7 +9,8 @@ the first ``--n-adapt`` presses of a virtual-sensor domain
 sensor's FEM mesh as truth), once towards the measured map I and once towards the image VAE's
 reconstruction VAE(I), each from the family model; measured on the other presses. Figures:
 per-node Euclidean error (um) against the FEM mesh, RMS over the sensing nodes pressed more than
-50 um and over every node. Complements ``bench/bench_predictor_real.py`` (real presses, the ball
+50 um and over every node; beside them, the depth maps' own error against the true depth over the
+contact and the shipped graph's error from the true maps (how much is the read-out). Complements ``bench/bench_predictor_real.py`` (real presses, the ball
 as reference, no mesh truth). Prints a markdown table.
 """
 
@@ -57,13 +58,18 @@ def main(argv=None) -> int:
     true = domain.vertices_mm[ev] - pad.vertices  # (K, n, 3) mm
     pressed = true[:, :m, 2] < -PRESSED_MM
 
-    def errors(onnx_path) -> tuple[float, float]:
-        pred = make_session(onnx_path, providers="cpu").run(["vertices"], {"depth": depth[ev][:, None]})[0]
+    def errors(onnx_path, maps=depth[ev]) -> tuple[float, float]:
+        pred = make_session(onnx_path, providers="cpu").run(["vertices"], {"depth": maps[:, None]})[0]
         e = np.linalg.norm(pred - pad.vertices - true, axis=-1)
         return 1e3 * float(np.sqrt((e[:, :m][pressed] ** 2).mean())), 1e3 * float(np.sqrt((e**2).mean()))
 
     step = StepProgram.load(args.step)
     rows = {"shipped graph": errors(args.onnx)}
+    # how much of it is the depth map: the read-out's error over the contact, and the graph on the true maps
+    true_maps = domain.true_depth_mm[ev].astype(np.float32)
+    contact = (true_maps > PRESSED_MM) & (domain.weight > 0.5)
+    readout_um = 1e3 * float(np.sqrt(((depth[ev] - true_maps)[contact] ** 2).mean()))
+    on_true = errors(args.onnx, true_maps)
     family = step.weights()
     settings = AdaptSettings(steps=args.steps, batch_size=16, lr=args.lr)
     with tempfile.TemporaryDirectory() as work:
@@ -80,6 +86,9 @@ def main(argv=None) -> int:
     print("| mesh | pressed sensing nodes um | all nodes um |\n|---|---|---|")
     for name, (p, a) in rows.items():
         print(f"| {name} | {p:.1f} | {a:.1f} |")
+    print(f"\nThe depth maps themselves: {readout_um:.1f} um RMS off the true depth over the contact pixels (true depth "
+          f"> {PRESSED_MM * 1e3:.0f} um); the shipped graph on the true depth maps: {on_true[0]:.1f} um on the pressed "
+          f"sensing nodes, {on_true[1]:.1f} um over all nodes.")
     return 0
 
 
