@@ -92,9 +92,9 @@ class Model:
         self.family = self.program.weights()
 
     def targets(self, domain: Domain, use_filter: bool = True) -> np.ndarray:
-        from tactile_deploy.adapt.step import vae_filter
+        from tactile_deploy.adapt.step import adaptation_target
 
-        return vae_filter(self.program, domain.depth_mm) if use_filter else domain.depth_mm
+        return adaptation_target(self.program, domain.depth_mm, use_filter)[0]
 
 
 def measure(model: Model, domain: Domain, weights: dict) -> dict:
