@@ -19,7 +19,9 @@ Measures, in one run on this machine, for each friction law asked for:
 
 Contacts are drawn as by ``tactile-deploy simulate`` (DatasetSpec defaults): an indenter of the
 bank uniformly, origin uniform in a 12 mm disc, rotation uniform, depth uniform in 0.2-1.2 mm;
-gel nu = 0.48 (as ``bench/bench_sim.py``). Results go to ``--out`` as JSON; the first friction
+gel nu = 0.48 (as ``bench/bench_sim.py``); Coulomb contact (``--friction coulomb``) draws a
+friction coefficient per contact uniformly in 0.3-1.5 and solves contact in float64 (the
+"float32" rows keep displacements and depth in float32). Results go to ``--out`` as JSON; the first friction
 law of ``--friction`` gives the headline keys (``samples_per_s``, ``batch_size``, ...).
 
 A GPU machine needs only torch, numpy, scipy and pydantic: write the envelope bank and the CPU
@@ -50,6 +52,7 @@ import torch  # noqa: E402
 NU = 0.48
 RADIUS_MAX_MM = 12.0
 DEPTH_MM = (0.2, 1.2)
+MU_RANGE = (0.3, 1.5)  # Coulomb contact: friction coefficient per contact, as the evaluation's domain
 
 
 def log(msg: str) -> None:
@@ -73,6 +76,14 @@ def draw_contacts(n: int, n_indenters: int, seed: int, device="cpu", radius_mm=R
     return index.to(device), poses.to(device)
 
 
+def draw_mu(friction: str, n: int, seed: int, device="cpu"):
+    """Friction coefficients (n,) float64 uniform in MU_RANGE for Coulomb contact, else None."""
+    if friction != "coulomb":
+        return None
+    g = torch.Generator(device="cpu").manual_seed(seed + 7919)
+    return (MU_RANGE[0] + (MU_RANGE[1] - MU_RANGE[0]) * torch.rand(n, generator=g, dtype=torch.float64)).to(device)
+
+
 def build_bank(names_arg: str, bank_path: str | None, device):
     from tactile_deploy.training.simulation.batched import EnvelopeBank
 
@@ -88,22 +99,28 @@ def build_bank(names_arg: str, bank_path: str | None, device):
 
 
 # ----------------------------------------------------------------------------------- reference
-def cpu_reference(mesh, material, bank, index, poses) -> dict:
-    """Results of the CPU path (ContactSimulator + DepthCamera) for the given contacts."""
+def cpu_reference(mesh, material, bank, index, poses, mu=None) -> dict:
+    """Results of the CPU path (ContactSimulator or CoulombSimulator with ``mu`` (n,) per
+    contact, + DepthCamera) for the given contacts."""
     from tactile_deploy.camera.depth import DepthCamera
     from tactile_deploy.fem.contact import ContactSolveError
+    from tactile_deploy.fem.coulomb import CoulombSimulator, CoulombSolveError
     from tactile_deploy.fem.simulator import ContactSimulator
     from tactile_deploy.indenters import ContactPose, get_indenter
 
-    sim = ContactSimulator(mesh, material)
+    coulomb = material.friction == "coulomb"
+    sim = ContactSimulator(mesh, material.model_copy(update={"friction": "stick"}) if coulomb else material)
     sim.prepare()
+    stick_sim = sim
     cam = DepthCamera()
     out = {k: [] for k in ("u", "forces", "mask", "force_n", "depth", "solved")}
-    for i, p in zip(index.tolist(), poses.tolist()):
+    for j, (i, p) in enumerate(zip(index.tolist(), poses.tolist())):
         pose = ContactPose(x_mm=p[0], y_mm=p[1], theta_deg=p[2], depth_mm=p[3])
+        if coulomb:
+            sim = CoulombSimulator.sharing(stick_sim, material.model_copy(update={"mu": float(mu[j])}))
         try:
             r = sim.solve(get_indenter(bank.names[i]), pose)
-        except ContactSolveError:  # the CPU path raises: a sticking active set that cycles
+        except (ContactSolveError, CoulombSolveError):  # the CPU path raises: an iteration that does not settle
             r = sim.solve_intrusion(np.full(mesh.n_plane, -np.inf))
             out["solved"].append(False)
         else:
@@ -114,6 +131,8 @@ def cpu_reference(mesh, material, bank, index, poses) -> dict:
         out["force_n"].append(r.force_n)
         out["depth"].append(cam.render(mesh, r.vertices_mm).depth_mm)
     ref = {k: np.asarray(v) for k, v in out.items()}
+    if mu is not None:
+        ref["mu"] = np.asarray(mu, np.float64)
     b = sim.block
     ref["C_stride"] = np.int64(5 * b)
     ref["C_sub"] = sim.compliance[:: 5 * b, :: 5 * b]
@@ -152,7 +171,7 @@ def compare(res, ref: dict, E_mpa: float) -> dict:
 
 
 # ----------------------------------------------------------------------------------- timing
-def solve_in_batches(sim, bank, index, poses, batch: int):
+def solve_in_batches(sim, bank, index, poses, batch: int, mu=None):
     """Run the whole pipeline over all contacts; returns per-stage seconds and counters."""
     device = sim.device
     stages = {"intrusion": 0.0, "contact": 0.0, "volume": 0.0, "depth": 0.0}
@@ -165,7 +184,7 @@ def solve_in_batches(sim, bank, index, poses, batch: int):
         delta = sim.intrusion(bank, index[s : s + batch], poses[s : s + batch])
         sync(device)
         stages["intrusion"] += time.perf_counter() - t0
-        res = sim.solve_intrusion(delta, stage_seconds=stages)
+        res = sim.solve_intrusion(delta, stage_seconds=stages, mu=None if mu is None else mu[s : s + batch])
         ok = res.solved
         checksum += res.depth_mm[ok].sum(dtype=torch.float64)
         checksum += res.displacements_mm[ok, 0].sum(dtype=torch.float64)
@@ -186,7 +205,9 @@ def solve_in_batches(sim, bank, index, poses, batch: int):
 def throughput(sim, bank, n: int, batch: int, seed: int, max_seconds: float, radius_mm: float) -> dict:
     device = sim.device
     index, poses = draw_contacts(n, len(bank), seed, device, radius_mm)
-    solve_in_batches(sim, bank, index[: min(batch, n)], poses[: min(batch, n)], batch)  # warm-up
+    mu = draw_mu(sim.material.friction, n, seed, device)
+    solve_in_batches(sim, bank, index[: min(batch, n)], poses[: min(batch, n)], batch,
+                     None if mu is None else mu[: min(batch, n)])  # warm-up
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         base = torch.cuda.memory_allocated(device)
@@ -196,7 +217,7 @@ def throughput(sim, bank, n: int, batch: int, seed: int, max_seconds: float, rad
     start = time.perf_counter()
     while done < n and time.perf_counter() - start < max_seconds:
         part = slice(done, min(n, done + 8 * batch))
-        st, ct = solve_in_batches(sim, bank, index[part], poses[part], batch)
+        st, ct = solve_in_batches(sim, bank, index[part], poses[part], batch, None if mu is None else mu[part])
         for k, v in st.items():
             stages[k] = stages.get(k, 0.0) + v
         for k, v in ct.items():
@@ -263,6 +284,7 @@ def run_friction(args, friction: str, mesh, bank, device, results: dict, out_pat
             ref = {k: f[k] for k in f.files}
         index = torch.as_tensor(ref["index"], device=device)
         poses = torch.as_tensor(ref["poses"], device=device)
+        mu = torch.as_tensor(ref["mu"], device=device) if "mu" in ref else None
         if "depth" not in ref:
             from tactile_deploy.camera.depth import DepthCamera
 
@@ -272,7 +294,9 @@ def run_friction(args, friction: str, mesh, bank, device, results: dict, out_pat
         entry["reference"] = f"{ref_file.name} (CPU path run elsewhere; displacements stored in float32)"
     elif args.check_n > 0:
         index, poses = draw_contacts(args.check_n, len(bank), args.seed + 1, device, args.radius)
-        ref = cpu_reference(mesh, material, bank, index.cpu(), poses.cpu())
+        mu = draw_mu(friction, args.check_n, args.seed + 1, device)
+        ref = cpu_reference(mesh, material, bank, index.cpu(), poses.cpu(),
+                            None if mu is None else mu.cpu().numpy())
         entry["reference"] = "CPU path in this run"
         if args.write_reference:
             from tactile_deploy.atomic import write_npz
@@ -293,17 +317,18 @@ def run_friction(args, friction: str, mesh, bank, device, results: dict, out_pat
                                                                     / np.abs(ref["G_sub"]).max())
         eq = {}
         for name, sim in (("float64", sim64), ("float32", sim32)):
-            res = sim.solve(bank, index, poses)
+            res = sim.solve(bank, index, poses, mu=mu)
             eq[name] = compare(res, ref, material.E_mpa)
         entry["equality_with_cpu"] = eq
         log(f"{friction}: equality {json.dumps(eq)}")
 
     # float32 against float64 on a larger subset.
     index, poses = draw_contacts(args.f32_n, len(bank), args.seed + 2, device, args.radius)
-    a = sim64.solve(bank, index, poses)
-    b = sim32.solve(bank, index, poses)
+    mu = draw_mu(friction, args.f32_n, args.seed + 2, device)
+    a = sim64.solve(bank, index, poses, mu=mu)
+    b = sim32.solve(bank, index, poses, mu=mu)
     both = a.solved & b.solved
-    a, b = (type(r)(**{k: (getattr(r, k)[both] if k not in ("stats",) else r.stats)
+    a, b = (type(r)(**{k: (getattr(r, k)[both] if k != "stats" and getattr(r, k) is not None else getattr(r, k))
                        for k in r.__dataclass_fields__}) for r in (a, b))
     entry["float32_vs_float64"] = {
         "n_samples": args.f32_n,

@@ -323,3 +323,52 @@ def test_package_imports_without_torch():
     code = ("import sys; sys.modules['torch'] = None; import tactile_deploy, "
             "tactile_deploy.fem.simulator, tactile_deploy.camera.depth, tactile_deploy.indenters")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_coulomb_batch_equals_the_cpu_simulator(small_mesh, bank):
+    """Per-sample friction coefficients, from frictionless to sticking, in one batch: forces,
+    contact and stick sets and depth as CoulombSimulator's (its Newton steps on the host)."""
+    from tactile_deploy.fem.coulomb import CoulombSimulator
+
+    stick = small_cpu(small_mesh, "stick")
+    batched = BatchedContactSimulator(small_mesh, Material(nu=0.48, friction="coulomb", mu=0.5),
+                                      dtype=torch.float64, operators=(stick.compliance, stick.greens))
+    rng = np.random.default_rng(13)
+    index = np.array([0, 1, 2, 3, 5, 6, 7, 8, 1, 0])
+    mu = np.array([0.0, 0.3, 0.5, 0.8, 1.0, 1.5, 0.4, 0.7, 5.0, 0.6])
+    poses = random_poses(rng, len(index), 4.0)
+    res = batched.solve(bank, torch.as_tensor(index), poses_tensor(poses), mu=torch.as_tensor(mu))
+    cam = DepthCamera()
+    n_slip = 0
+    for i, pose in enumerate(poses):
+        cpu = CoulombSimulator.sharing(stick, Material(nu=0.48, friction="coulomb", mu=float(mu[i])))
+        ref = cpu.solve(get_indenter(INDENTERS[index[i]]), pose)
+        assert res.solved[i]
+        scale = max(1.0, np.abs(ref.contact_forces_n).max())
+        np.testing.assert_allclose(res.contact_forces_n[i].numpy(), ref.contact_forces_n, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_array_equal(res.contact_mask[i].numpy(), ref.contact_mask)
+        np.testing.assert_array_equal(res.stick_mask[i].numpy(), ref.stick_mask)
+        np.testing.assert_allclose(res.displacements_mm[i].numpy(), ref.displacements_mm, rtol=0, atol=1e-10)
+        depth_ref = cam.render(cpu.mesh, ref.vertices_mm).depth_mm
+        np.testing.assert_allclose(res.depth_mm[i].numpy(), depth_ref, rtol=0, atol=1e-6)
+        n_slip += int((ref.contact_mask & ~ref.stick_mask).sum())
+    assert n_slip > 0  # partial slip occurs in the batch
+    # the frictionless limit: mu = 0 is the frictionless simulator's contact (one dof per node)
+    free = small_cpu(small_mesh, "frictionless").solve(get_indenter(INDENTERS[index[0]]), poses[0])
+    assert float(res.contact_forces_n[0, :, :2].abs().max()) == 0.0
+    np.testing.assert_allclose(res.displacements_mm[0].numpy(), free.displacements_mm, rtol=0, atol=1e-10)
+
+
+def test_coulomb_host_fallback_is_counted_and_exact(small_mesh, bank):
+    """Samples with more nodes in contact than the device may take go to the CPU solver."""
+    stick = small_cpu(small_mesh, "stick")
+    mat = Material(nu=0.48, friction="coulomb", mu=0.6)
+    poses = poses_tensor(random_poses(np.random.default_rng(14), 3, 3.0, depth_mm=(0.6, 0.9)))
+    index = torch.tensor([1, 2, 0])
+    ref = BatchedContactSimulator(small_mesh, mat, dtype=torch.float64, operators=(stick.compliance, stick.greens))
+    small = BatchedContactSimulator(small_mesh, mat, dtype=torch.float64, operators=(stick.compliance, stick.greens),
+                                    max_active_nodes=4)
+    a, b = ref.solve(bank, index, poses), small.solve(bank, index, poses)
+    assert a.stats["n_contact_fallback"] == 0 and b.stats["contact_host_fallback"] == {"active_set_too_large": 3}
+    np.testing.assert_allclose(b.contact_forces_n.numpy(), a.contact_forces_n.numpy(), rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(b.stick_mask.numpy(), a.stick_mask.numpy())

@@ -134,7 +134,7 @@ def test_targets_and_table_of_an_evaluation_report():
 
 @pytest.fixture(scope="module")
 def surface_run(tmp_path_factory, pad):
-    """A tiny surface-anchored run on the CPU: 32 contacts of a frictionless + stick mixture."""
+    """A tiny surface-anchored run on the CPU: 32 contacts of a frictionless + stick + Coulomb mixture."""
     from tactile_deploy.training.config import TrainConfig
     from tactile_deploy.training.train import train
 
@@ -148,7 +148,7 @@ def surface_run(tmp_path_factory, pad):
         "data": {"synthetic": {
             "n_samples": 32, "seed": 5, "indenters": ["sphere_r4", "cube_corner"], "radius_max_mm": 3.0,
             "depth_min_mm": 0.3, "depth_max_mm": 1.0, "contact_radius_mm": 7.5, "formulation": "standard",
-            "friction": ["frictionless", "stick"]}},
+            "friction": ["frictionless", "stick", "coulomb"]}},
         "image_vae": None, "mesh_vae": None, "lean_decoder": None, "projection": None, "finetune": None,
         "surface": {**stage, "image_weight": 1.0, "train_ood_decoder": True, "contact_weight": 30.0},
         "ood_decoder": stage,

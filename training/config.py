@@ -135,9 +135,14 @@ class SyntheticData(StrictModel):
     depth_max_mm: float = Field(1.2, gt=0)
     radius_max_mm: float = Field(12.0, ge=0, description="Contacts lie within this radius, mm.")
     nu: float = Field(0.48, ge=0, lt=0.5, description="Poisson ratio of the gel.")
-    friction: Literal["frictionless", "stick"] | tuple[Literal["frictionless", "stick"], ...] = Field(
-        "frictionless", description="Contact law of the simulated presses: the gel slides freely, or sticks to the "
-        "indenter; a list of laws makes a mixture (equal shares, law k for contacts k, k + L, ...).",
+    friction: Literal["frictionless", "stick", "coulomb"] | tuple[Literal["frictionless", "stick", "coulomb"], ...] = Field(
+        "frictionless", description="Contact law of the simulated presses: the gel slides freely, sticks to the "
+        "indenter, or follows Coulomb's law with a coefficient drawn per contact from mu_range; a list of laws makes "
+        "a mixture (equal shares: law k for contacts k, k + L, ... on the CPU, for the k-th block of samples in the "
+        "batched generator).",
+    )
+    mu_range: tuple[float, float] = Field(
+        (0.3, 1.5), description="Coulomb contact: friction coefficients drawn uniformly from [low, high] per contact."
     )
     contact_radius_mm: float | None = Field(
         None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
@@ -157,6 +162,13 @@ class SyntheticData(StrictModel):
         description="Tet formulation with contact_radius_mm: locking-free nodal pressure, or standard "
         "linear tets (a 5x cheaper factorisation; stiffer near nu = 0.5, for quick tests).",
     )
+
+    @model_validator(mode="after")
+    def _check_mu(self) -> "SyntheticData":
+        low, high = self.mu_range
+        if not 0.0 <= low <= high:
+            raise ValueError(f"mu_range must be [low, high] with 0 <= low <= high, got {list(self.mu_range)}")
+        return self
 
 
 class DataConfig(StrictModel):

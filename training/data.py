@@ -150,6 +150,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     from tactile_deploy.indenters import ContactPose, get_indenter
     from tactile_deploy.pad.asset import load_pad
     from tactile_deploy.fem.contact import ContactSolveError
+    from tactile_deploy.fem.coulomb import CoulombSimulator, CoulombSolveError
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
 
     if spec.depth_min_mm > spec.depth_max_mm:
@@ -162,10 +163,12 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     materials, sims = [], []
     for law in friction_laws(spec):
         materials.append(Material(nu=spec.nu, friction=law))
+        # Coulomb contact: the sticking simulator's operators, a coefficient per contact (below)
+        base = materials[-1].model_copy(update={"friction": "stick"}) if law == "coulomb" else materials[-1]
         if allowed is None:
-            sims.append(get_simulator(materials[-1]))
+            sims.append(get_simulator(base))
         else:  # numpy assembly: 0.3 s, against ~30 s of kernel compilation for a cold warp cache
-            sims.append(ContactSimulator(pad, materials[-1], assembly="numpy", formulation=spec.formulation,
+            sims.append(ContactSimulator(pad, base, assembly="numpy", formulation=spec.formulation,
                                          contact_nodes=np.flatnonzero(allowed)))
     cam = get_camera()
     names = _indenter_names(spec)
@@ -180,6 +183,9 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     i = contact = rejected = 0
     while i < n:
         material, sim = materials[contact % len(materials)], sims[contact % len(sims)]
+        if material.friction == "coulomb":
+            material = material.model_copy(update={"mu": float(rng.uniform(*spec.mu_range))})
+            sim = CoulombSimulator.sharing(sim, material)
         k = int(rng.integers(len(indenters)))
         r = spec.radius_max_mm * math.sqrt(rng.random())
         phi = 2.0 * math.pi * rng.random()
@@ -192,7 +198,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 break
             try:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
-            except (ContactError, ContactSolveError):  # off the pad, or a sticking contact the solver gives up on
+            except (ContactError, ContactSolveError, CoulombSolveError):  # off the pad, or a contact the solver gives up on
                 rejected += 1
                 break
             depth[i] = s.depth_mm
@@ -278,7 +284,11 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
         theta = 360.0 * torch.rand(m, generator=g, dtype=torch.float64)
         dmm = spec.depth_min_mm + (spec.depth_max_mm - spec.depth_min_mm) * torch.rand(m, generator=g, dtype=torch.float64)
         poses = torch.stack([r * torch.cos(phi), r * torch.sin(phi), theta, dmm], 1)
-        res = sim.solve(bank, index.to(device), poses.to(device))
+        mu = None
+        if law == "coulomb":  # drawn only for Coulomb blocks: the other laws' streams are unchanged
+            low, high = spec.mu_range
+            mu = (low + (high - low) * torch.rand(m, generator=g, dtype=torch.float64)).to(device)
+        res = sim.solve(bank, index.to(device), poses.to(device), mu=mu)
         keep = (res.solved & res.contact_mask.any(dim=1)).cpu().numpy()
         take = np.flatnonzero(keep)[: end - i]
         drawn += m

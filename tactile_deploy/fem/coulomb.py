@@ -202,6 +202,47 @@ def _slip_rows(M, rhs, CA, rows, f, u, delta, ref, mu, c_n, c_t) -> None:
         rhs[3 * r: 3 * r + 2] = nz[q] * t_hat[q] - eta_k[q] * z_k[q] - B @ (c_t[q] * ref[q])
 
 
+def coulomb_surface_forces(C: np.ndarray, delta: np.ndarray, mu: float, ref: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Coulomb contact over all contact nodes: forces (k, 3) N at E = 1, stick flags (k,) and the
+    Newton steps taken, for intrusions ``delta`` (k,) mm and stick references ``ref`` (k, 2) mm
+    (zero: from rest), on the compliance ``C`` (3k, 3k) mm/N at E = 1 (node-major x, y, z).
+
+    Candidates as for frictionless contact (intrusion above minus the largest one), grown by
+    every node found penetrating until none does; each round is :func:`solve_coulomb_ssn` on the
+    candidates. Raises :class:`CoulombSolveError` when a round does not settle or the candidates
+    do not settle in 20 rounds.
+    """
+    k = len(delta)
+    forces = np.zeros((k, 3))
+    stick = np.zeros(k, bool)
+    if ref is None:
+        ref = np.zeros((k, 2))
+    if not np.any(delta > 0):
+        return forces, stick, 0
+    reach = float(np.max(delta))
+    cand = np.flatnonzero(delta > -reach)
+    iterations = 0
+    for _ in range(20):
+        dofs = (cand[:, None] * 3 + np.arange(3)).ravel()
+        sol = solve_coulomb_ssn(C[np.ix_(dofs, dofs)], delta[cand], mu, ref[cand])
+        iterations += sol.iterations
+        forces[:] = 0.0
+        stick[:] = False
+        forces[cand] = sol.forces
+        stick[cand] = sol.stick
+        act = cand[sol.active]
+        adofs = (act[:, None] * 3 + np.arange(3)).ravel()
+        u_normal = C[2::3][:, adofs] @ forces[act].ravel()
+        penetrating = np.flatnonzero(-delta - u_normal < -1e-9 * reach)
+        missing = np.setdiff1d(penetrating, cand)
+        if len(missing) == 0:
+            return forces, stick, iterations
+        cand = np.union1d(cand, missing)
+    raise CoulombSolveError("contact candidate set did not settle in 20 rounds "
+                            f"(mu = {mu:g}, max intrusion {reach:.4g} mm)")
+
+
 def _check_coulomb(material: Material) -> None:
     if material.friction != "coulomb":
         raise ValueError(f"CoulombSimulator solves friction 'coulomb', got material.friction="
@@ -303,37 +344,9 @@ class CoulombSimulator(ContactSimulator):
         Candidates as for frictionless contact (intrusion above minus the largest one), grown
         by every node found penetrating until none does.
         """
-        k = len(delta)
-        forces = np.zeros((k, 3))
-        stick = np.zeros(k, bool)
-        if ref is None:
-            ref = np.zeros((k, 2))
-        if not np.any(delta > 0):
-            return forces, stick
-        C = self.compliance
-        mu = float(self.material.mu)
-        reach = float(np.max(delta))
-        cand = np.flatnonzero(delta > -reach)
-        iterations = 0
-        for _ in range(20):
-            dofs = (cand[:, None] * 3 + np.arange(3)).ravel()
-            sol = solve_coulomb_ssn(C[np.ix_(dofs, dofs)], delta[cand], mu, ref[cand])
-            iterations += sol.iterations
-            forces[:] = 0.0
-            stick[:] = False
-            forces[cand] = sol.forces
-            stick[cand] = sol.stick
-            act = cand[sol.active]
-            adofs = (act[:, None] * 3 + np.arange(3)).ravel()
-            u_normal = C[2::3][:, adofs] @ forces[act].ravel()
-            penetrating = np.flatnonzero(-delta - u_normal < -1e-9 * reach)
-            missing = np.setdiff1d(penetrating, cand)
-            if len(missing) == 0:
-                self.last_iterations = iterations
-                return forces, stick
-            cand = np.union1d(cand, missing)
-        raise CoulombSolveError("contact candidate set did not settle in 20 rounds "
-                                f"(mu = {mu:g}, max intrusion {reach:.4g} mm)")
+        forces, stick, self.last_iterations = coulomb_surface_forces(self.compliance, delta,
+                                                                     float(self.material.mu), ref)
+        return forces, stick
 
     def _coulomb_result(self, delta, forces, u, stick) -> ContactResult:
         res = self._result(delta, forces, u)

@@ -623,6 +623,8 @@ class BatchedContactResult:
     solved : (B,) bool — False for contacts the CPU path cannot solve either (all their fields
         are NaN; drop them, as the data generator drops poses it rejects)
     stats : dict — contact :class:`ContactStats` fields, padded pixel boxes of the render
+    stick_mask : (B, n_plane) bool — Coulomb contact: nodes in contact that stick (None for the
+        other laws)
     """
 
     intrusion_mm: torch.Tensor
@@ -633,6 +635,7 @@ class BatchedContactResult:
     depth_mm: torch.Tensor | None
     solved: torch.Tensor
     stats: dict
+    stick_mask: torch.Tensor | None = None
 
 
 class BatchedContactSimulator:
@@ -641,8 +644,10 @@ class BatchedContactSimulator:
     Parameters
     ----------
     mesh : PadMesh
-    material : Material — friction "frictionless" (b = 1) or "stick" (b = 3); nu sets the
-        operators; E_mpa scales the forces.
+    material : Material — friction "frictionless" (b = 1), "stick" or "coulomb" (b = 3; Coulomb
+        contact in float64 by :class:`~tactile_deploy.training.simulation.batched_coulomb.BatchedCoulomb`,
+        one friction coefficient per sample given to :meth:`solve`, ``material.mu`` by default);
+        nu sets the operators; E_mpa scales the forces.
     device, dtype : where and in which precision contact, displacements and depth are computed
         (intrusion is always float64).
     operators : "auto" (the CPU simulator's cache when present, else computed on the device),
@@ -665,10 +670,10 @@ class BatchedContactSimulator:
         camera=None,
         max_active_nodes: int = 768,
     ):
-        if material.friction not in ("frictionless", "stick"):
+        if material.friction not in ("frictionless", "stick", "coulomb"):
             raise ValueError(
-                f"friction={material.friction!r}: the batched simulator solves 'frictionless' "
-                f"and 'stick' contact"
+                f"friction={material.friction!r}: the batched simulator solves 'frictionless', "
+                f"'stick' and 'coulomb' contact"
             )
         self.mesh = mesh
         self.material = material
@@ -688,7 +693,12 @@ class BatchedContactSimulator:
                 f"({kb}, {kb}) and ({kb}, {mesh.n_nodes}, 3) for this mesh and friction"
             )
         self.G = torch.as_tensor(G).to(self.device, dtype).reshape(kb, mesh.n_nodes * 3)
-        self.contact = BatchedContact(self.C, self.block, C64, max_active_nodes=max_active_nodes)
+        if material.friction == "coulomb":
+            from tactile_deploy.training.simulation.batched_coulomb import BatchedCoulomb
+
+            self.contact = BatchedCoulomb(C64, max_active_nodes=max_active_nodes)
+        else:
+            self.contact = BatchedContact(self.C, self.block, C64, max_active_nodes=max_active_nodes)
         self.sensing_xy = torch.as_tensor(mesh.vertices[: mesh.n_plane, :2], dtype=torch.float64,
                                           device=self.device)
         self.sensing_z = torch.as_tensor(mesh.vertices[: mesh.n_plane, 2], dtype=torch.float64,
@@ -702,12 +712,14 @@ class BatchedContactSimulator:
             return torch.as_tensor(C), torch.as_tensor(G), "given"
         if operators not in ("auto", "torch", "cache"):
             raise ValueError(f"operators must be 'auto', 'torch', 'cache' or (C, G), got {operators!r}")
+        # Coulomb contact shares the operators of sticking contact (three dofs per node).
+        material = self.material.model_copy(update={"friction": "stick"}) if self.block == 3 else self.material
         if operators in ("auto", "cache"):
-            ops = cached_cpu_operators(self.mesh, self.material, self.supports, self.formulation)
+            ops = cached_cpu_operators(self.mesh, material, self.supports, self.formulation)
             if ops is None and operators == "cache":
                 from tactile_deploy.fem.simulator import ContactSimulator
 
-                sim = ContactSimulator(self.mesh, self.material, self.supports,
+                sim = ContactSimulator(self.mesh, material, self.supports,
                                        formulation=self.formulation)
                 sim.prepare()
                 ops = (sim.compliance, sim.greens)
@@ -738,23 +750,33 @@ class BatchedContactSimulator:
         delta = bank.intrusion_mm(index, poses, self.sensing_xy.to(bank.device))
         return delta.to(self.device) + self.sensing_z
 
-    def solve(self, bank: EnvelopeBank, index, poses, render: bool = True) -> BatchedContactResult:
+    def solve(self, bank: EnvelopeBank, index, poses, render: bool = True, mu=None) -> BatchedContactResult:
         """Contacts of indenters ``index`` (B,) of ``bank`` at ``poses`` (B, 4) = (x_mm, y_mm,
-        theta_deg, depth_mm) (see :class:`~tactile_deploy.indenters.ContactPose`)."""
-        return self.solve_intrusion(self.intrusion(bank, index, poses), render=render)
+        theta_deg, depth_mm) (see :class:`~tactile_deploy.indenters.ContactPose`); ``mu`` (B,)
+        or a scalar: friction coefficients of Coulomb contact (default ``material.mu``)."""
+        return self.solve_intrusion(self.intrusion(bank, index, poses), render=render, mu=mu)
 
     def solve_intrusion(self, delta: torch.Tensor, render: bool = True,
-                        stage_seconds: dict | None = None) -> BatchedContactResult:
+                        stage_seconds: dict | None = None, mu=None) -> BatchedContactResult:
         """Contacts for intrusion fields ``delta`` (B, n_plane) mm at the sensing nodes.
 
         ``stage_seconds``: when given, the device is synchronised after each stage and the
         seconds spent in "contact", "volume" and "depth" are added to it (profiling).
+        ``mu``: Coulomb contact's friction coefficients, (B,) or a scalar (default
+        ``material.mu``); not allowed for the other laws.
         """
         delta = torch.as_tensor(delta, dtype=torch.float64, device=self.device)
         if delta.ndim != 2 or delta.shape[1] != self.mesh.n_plane:
             raise ValueError(f"delta must have shape (B, {self.mesh.n_plane}), got {tuple(delta.shape)}")
         clock = _StageClock(self.device, stage_seconds)
-        forces, active, cstats = self.contact.solve(delta)
+        stick_mask = None
+        if self.material.friction == "coulomb":
+            forces, active, stick_mask, cstats = self.contact.solve(delta, self.material.mu if mu is None else mu)
+        elif mu is not None:
+            raise ValueError(f"mu is the friction coefficient of Coulomb contact; this simulator's friction "
+                             f"is {self.material.friction!r}")
+        else:
+            forces, active, cstats = self.contact.solve(delta)
         clock("contact")
         B, n_plane = delta.shape
         solved = torch.ones(B, dtype=torch.bool, device=self.device)
@@ -767,7 +789,7 @@ class BatchedContactSimulator:
         if self.block == 1:
             f3[:, :, 2] = forces[:, :, 0]
         else:
-            f3[:] = forces
+            f3[:] = forces.to(self.dtype)
         f3 = f3 * self.material.E_mpa
         fn = -f3[:, :, 2]
         stats = {
@@ -801,6 +823,7 @@ class BatchedContactSimulator:
             depth_mm=depth,
             solved=solved,
             stats=stats,
+            stick_mask=None if stick_mask is None else stick_mask & (fn > 0),
         )
 
     def displacements_from_forces(self, forces_e1: torch.Tensor) -> torch.Tensor:
