@@ -188,7 +188,35 @@ def markdown(result: dict, gpu: dict | None) -> str:
             f"| Coulomb, mu 0.3-1.5 (semi-smooth Newton, `CoulombSimulator`) | {r['coulomb']:.1f} | "
             f"{laws['coulomb_vs_frictionless']:.2f}x ({laws['coulomb_vs_stick']:.2f}x stick) |",
         ]
+    gpu_laws = _gpu_friction_rows()
+    if gpu_laws:
+        lines += [
+            "",
+            "The batched torch path per friction law on one GPU (`bench/bench_sim_gpu.py`: intrusion, contact, "
+            "volume and depth map, float32 fields; Coulomb contact solved in float64), against the CPU path on the "
+            "same contacts:",
+            "",
+            "| friction law | device | contacts/s | GPU memory per sample kB | max force difference vs CPU N "
+            "(contacts) | results |",
+            "|---|---|---:|---:|---|---|",
+        ] + gpu_laws
     return "\n".join(lines)
+
+
+def _gpu_friction_rows() -> list[str]:
+    """Table rows of the committed GPU results, one per friction law (bench/results/sim_gpu_*.json)."""
+    rows = []
+    for path in sorted((ROOT / "bench" / "results").glob("sim_gpu_*h100.json")):
+        doc = json.loads(path.read_text())
+        for law, entry in doc.get("frictions", {}).items():
+            t = entry.get("throughput_float32")
+            if not t:
+                continue
+            eq = entry.get("equality_with_cpu", {}).get("float64", {})
+            diff = (f"{eq['max_abs_force_n']:.1e} ({eq['n_samples']})" if "max_abs_force_n" in eq else "-")
+            rows.append(f"| {law} | {doc.get('device_name', 'GPU')} | {t['samples_per_s']:.0f} | "
+                        f"{t.get('memory_per_sample_kb', float('nan')):.0f} | {diff} | `{path.relative_to(ROOT)}` |")
+    return rows
 
 
 def main(argv=None) -> dict:
