@@ -57,13 +57,21 @@ FLOOR_MM = 0.02
 def _graph_tensors(model):
     """Names of the reconstruction, latent mean and hidden layer in the shipped graph (exported or
     with the size-normalised score): the reconstruction as :func:`tactile_deploy.training.ood_score.recon_tensor`
-    finds it; the latent mean is the Gemm with weight ``mu.weight``."""
+    finds it; the latent mean is the layer with weight ``mu.weight``: one Gemm, or a MatMul with
+    the (transposed) weight followed by the Add of ``mu.bias`` (as the dynamo exporter writes it)."""
     from tactile_deploy.training.ood_score import recon_tensor
 
-    mu = [n for n in model.graph.node if n.op_type == "Gemm" and n.input[1] == "mu.weight"]
-    if len(mu) != 1:
-        raise ValueError(f"expected one Gemm with weight mu.weight (the latent mean), found {len(mu)}")
-    return {"recon": recon_tensor(model), "mu": mu[0].output[0], "hidden": mu[0].input[0]}
+    nodes = model.graph.node
+    gemm = [n for n in nodes if n.op_type == "Gemm" and n.input[1] == "mu.weight"]
+    if len(gemm) == 1:
+        return {"recon": recon_tensor(model), "mu": gemm[0].output[0], "hidden": gemm[0].input[0]}
+    matmul = [n for n in nodes if n.op_type == "MatMul" and n.input[1].startswith("mu.weight")]
+    bias = [n for n in nodes if n.op_type == "Add" and matmul and matmul[0].output[0] in n.input
+            and "mu.bias" in n.input]
+    if len(matmul) != 1 or len(bias) != 1:
+        raise ValueError(f"expected the latent mean as one Gemm, or one MatMul + Add, with weight mu.weight; "
+                         f"found {len(gemm)} Gemm, {len(matmul)} MatMul, {len(bias)} Add")
+    return {"recon": recon_tensor(model), "mu": bias[0].output[0], "hidden": matmul[0].input[0]}
 
 
 def _sets(spec, shared: Path):
