@@ -46,7 +46,7 @@ Units: mm, N, MPa; sensor frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -54,11 +54,13 @@ import torch
 from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_map
 from tactile_deploy.fem.material import Material
 from tactile_deploy.pad.mesh import PadMesh
+from tactile_deploy.training.simulation.active_sets import (
+    BLOCK_ELEMENTS,
+    PENETRATION_RTOL,
+    ContactStats,
+    size_bucket,
+)
 
-# Relative penetration tolerance of the candidate check (as in ContactSimulator.surface_forces).
-_PENETRATION_RTOL = 1e-9
-# Largest number of matrix elements gathered for one batched factorisation.
-_BLOCK_ELEMENTS = 1 << 27
 # Active sets remembered per sample to detect a cycling active-set iteration.
 _CYCLE_HISTORY = 16
 # Pose columns.
@@ -292,40 +294,6 @@ class EnvelopeBank:
 
 
 # ----------------------------------------------------------------------------------- contact
-@dataclass
-class ContactStats:
-    """Counters of one batched contact solve.
-
-    ``host_fallback``: samples solved on the host by the CPU code path, per reason
-    (``"active_set_too_large"``, ``"active_set_cycles"``, ``"not_settled"``,
-    ``"factorisation_failed"``);
-    ``unsolved``: samples the CPU code path cannot solve either (it raises for them: a sticking
-    active set that cycles); their forces are NaN; ``escalated_to_float64``: float32 samples
-    solved again in float64 on the device;
-    ``iterations``: largest number of active-set steps of a sample; ``rounds``: largest number of
-    candidate-set enlargements + 1; ``samples_in_contact``: samples with some ``delta > 0``.
-    """
-
-    n_samples: int = 0
-    samples_in_contact: int = 0
-    escalated_to_float64: int = 0
-    iterations: int = 0
-    rounds: int = 0
-    host_fallback: dict = field(default_factory=dict)
-    unsolved: list = field(default_factory=list)
-
-    @property
-    def n_fallback(self) -> int:
-        return int(sum(self.host_fallback.values()))
-
-
-def _size_bucket(n: torch.Tensor) -> torch.Tensor:
-    """Round active-set sizes up to 4 steps per octave (>= 8): pad waste <= 25 %."""
-    n = n.clamp(min=1).to(torch.float64)
-    step = torch.clamp(torch.exp2(torch.floor(torch.log2(n))) / 4, min=8.0)
-    return (torch.ceil(n / step) * step).to(torch.int64)
-
-
 def _host_surface_forces(C: np.ndarray, delta: np.ndarray, block: int,
                          nnls_round: int | None = None) -> np.ndarray:
     """ContactSimulator.surface_forces for one sample (numpy, float64): the host fallback.
@@ -355,7 +323,7 @@ def _host_surface_forces(C: np.ndarray, delta: np.ndarray, block: int,
         active = cand[sol.active]
         adofs = (active[:, None] * b + np.arange(b)).ravel()
         u_normal = C[b - 1 :: b][:, adofs] @ forces[active].ravel()
-        penetrating = np.flatnonzero(-delta - u_normal < -_PENETRATION_RTOL * scale)
+        penetrating = np.flatnonzero(-delta - u_normal < -PENETRATION_RTOL * scale)
         missing = np.setdiff1d(penetrating, cand)
         if len(missing) == 0:
             return forces
@@ -379,7 +347,7 @@ class BatchedContact:
 
     def __init__(self, C: torch.Tensor, block: int, C64: torch.Tensor | None = None,
                  max_active_nodes: int = 768, max_iter: int = 100, max_rounds: int = 20,
-                 block_elements: int = _BLOCK_ELEMENTS):
+                 block_elements: int = BLOCK_ELEMENTS):
         if block not in (1, 3):
             raise ValueError(f"block must be 1 or 3, got {block}")
         if C.ndim != 2 or C.shape[0] != C.shape[1] or C.shape[0] % block:
@@ -450,7 +418,7 @@ class BatchedContact:
             active_out[wg] = act[good]
             # Penetration check on the nodes that are not candidates (one GEMM, done in _pdas).
             dg = delta[wg].to(dt)
-            pen = (-dg - un[good] < -_PENETRATION_RTOL * scale[wg, None].to(dt)) & ~cand[wg]
+            pen = (-dg - un[good] < -PENETRATION_RTOL * scale[wg, None].to(dt)) & ~cand[wg]
             missing = pen.any(dim=1)
             if not bool(missing.any()):
                 work = work[:0]
@@ -566,7 +534,7 @@ class BatchedContact:
         s, k = active.shape
         f = torch.zeros((s, k * b), dtype=dt, device=dev)
         failed = torch.zeros(s, dtype=torch.bool, device=dev)
-        size = _size_bucket(counts)
+        size = size_bucket(counts)
         size = torch.where(counts == 0, 0, size)
         for n in torch.unique(size).tolist():
             if n == 0:

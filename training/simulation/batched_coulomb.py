@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from tactile_deploy.fem.coulomb import MAX_ITER, TOL, CoulombSolveError, coulomb_surface_forces
-from tactile_deploy.training.simulation.batched import _BLOCK_ELEMENTS, _PENETRATION_RTOL, ContactStats, _size_bucket
+from tactile_deploy.training.simulation.active_sets import BLOCK_ELEMENTS, PENETRATION_RTOL, ContactStats, size_bucket
 
 # Failure reasons of one sample's Newton iteration on the device.
 _NOT_SETTLED, _TOO_LARGE, _SINGULAR = 0, 1, 2
@@ -46,7 +46,7 @@ class BatchedCoulomb:
     """
 
     def __init__(self, C: torch.Tensor, max_active_nodes: int = 768, max_iter: int = MAX_ITER,
-                 tol: float = TOL, max_rounds: int = 20, block_elements: int = _BLOCK_ELEMENTS):
+                 tol: float = TOL, max_rounds: int = 20, block_elements: int = BLOCK_ELEMENTS):
         if C.dtype != torch.float64:
             raise ValueError(f"Coulomb contact is solved in float64, got C of dtype {C.dtype}")
         if C.ndim != 2 or C.shape[0] != C.shape[1] or C.shape[0] % 3:
@@ -99,7 +99,7 @@ class BatchedCoulomb:
             wg = work[good]
             forces[wg], active_out[wg], stick_out[wg] = f[good], act[good], st[good]
             un = f[good].reshape(len(good), 3 * k) @ C[:, 2::3]  # (g, k) normal displacements
-            pen = (-delta[wg] - un < -_PENETRATION_RTOL * reach[wg, None]) & ~cand[wg]
+            pen = (-delta[wg] - un < -PENETRATION_RTOL * reach[wg, None]) & ~cand[wg]
             missing = pen.any(dim=1)
             cand[wg] |= pen
             work = wg[missing]
@@ -191,7 +191,7 @@ class BatchedCoulomb:
         dev = self.C.device
         f_new = torch.zeros((s, k, 3), dtype=torch.float64, device=dev)
         singular = torch.zeros(s, dtype=torch.bool, device=dev)
-        size = torch.where((counts == 0) | (counts > self.max_active_nodes), 0, _size_bucket(counts))
+        size = torch.where((counts == 0) | (counts > self.max_active_nodes), 0, size_bucket(counts))
         for n in torch.unique(size).tolist():
             if n == 0:
                 continue  # nothing in contact (zero forces) or too large (solved on the host)
