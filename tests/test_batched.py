@@ -372,3 +372,24 @@ def test_coulomb_host_fallback_is_counted_and_exact(small_mesh, bank):
     assert a.stats["n_contact_fallback"] == 0 and b.stats["contact_host_fallback"] == {"active_set_too_large": 3}
     np.testing.assert_allclose(b.contact_forces_n.numpy(), a.contact_forces_n.numpy(), rtol=0, atol=1e-10)
     np.testing.assert_array_equal(b.stick_mask.numpy(), a.stick_mask.numpy())
+
+
+def test_batched_generator_draws_coulomb_coefficients(small_mesh, monkeypatch):
+    """The batched data generator with Coulomb contact: with mu_range (0, 0) every sample is the
+    frictionless generator's sample of the same seed (the poses are drawn before the coefficients);
+    with mu 0.8 the gel is held and the samples differ."""
+    import tactile_deploy.pad.asset as asset
+    from tactile_deploy.training.config import SyntheticData
+    from tactile_deploy.training.data import generate_batched
+
+    monkeypatch.setattr(asset, "load_pad", lambda *a, **k: small_mesh)
+    spec = SyntheticData(n_samples=12, seed=3, indenters=("sphere_r4", "cube_corner"), radius_max_mm=3.0,
+                         depth_min_mm=0.3, depth_max_mm=0.8, generator="batched")
+    free = generate_batched(spec)
+    zero = generate_batched(spec.model_copy(update={"friction": "coulomb", "mu_range": (0.0, 0.0)}))
+    held = generate_batched(spec.model_copy(update={"friction": "coulomb", "mu_range": (0.8, 0.8)}))
+    np.testing.assert_allclose(zero.displacement_mm, free.displacement_mm, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(zero.depth_mm, free.depth_mm, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(held.indenter, free.indenter)
+    lateral = np.abs(held.displacement_mm[:, : small_mesh.n_plane, :2] - free.displacement_mm[:, : small_mesh.n_plane, :2])
+    assert lateral.max() > 0.01  # mm: friction holds the surface where frictionless contact lets it slide
