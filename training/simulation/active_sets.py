@@ -24,7 +24,8 @@ class ContactStats:
 
     ``host_fallback``: samples solved on the host by the CPU code path, per reason
     (``"active_set_too_large"``, ``"active_set_cycles"``, ``"not_settled"``,
-    ``"factorisation_failed"``);
+    ``"factorisation_failed"``; Coulomb contact: ``"singular_system"`` in place of the last two
+    kinds of failure of the active-set iteration);
     ``unsolved``: samples the CPU code path cannot solve either (it raises for them: a sticking
     active set that cycles); their forces are NaN; ``escalated_to_float64``: float32 samples
     solved again in float64 on the device;
