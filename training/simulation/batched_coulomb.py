@@ -68,8 +68,7 @@ class BatchedCoulomb:
         """Forces (B, k, 3) N at E = 1 (indenter on gel, NaN for ``stats.unsolved``), active
         (B, k) and stick (B, k) bool, and :class:`ContactStats`, for intrusions ``delta``
         (B, k) mm (-inf: not covered) and friction coefficients ``mu`` (B,) or a scalar, >= 0."""
-        C, k = self.C, self.k
-        dev = C.device
+        k, dev = self.k, self.C.device
         delta = torch.as_tensor(delta, dtype=torch.float64, device=dev)
         if delta.ndim != 2 or delta.shape[1] != k:
             raise ValueError(f"delta must have shape (B, {k}), got {tuple(delta.shape)}")
@@ -91,15 +90,14 @@ class BatchedCoulomb:
             if work.numel() == 0:
                 break
             stats.rounds = rnd
-            f, act, st, ok, it, reasons = self._newton(delta[work], cand[work], mu[work])
+            f, act, st, un, ok, it, reasons = self._newton(delta[work], cand[work], mu[work])
             stats.iterations = max(stats.iterations, it)
             bad = torch.nonzero(~ok).flatten()
             failures += [(i, r) for i, r in zip(work[bad].tolist(), reasons[bad].tolist())]
             good = torch.nonzero(ok).flatten()
             wg = work[good]
             forces[wg], active_out[wg], stick_out[wg] = f[good], act[good], st[good]
-            un = f[good].reshape(len(good), 3 * k) @ C[:, 2::3]  # (g, k) normal displacements
-            pen = (-delta[wg] - un < -PENETRATION_RTOL * reach[wg, None]) & ~cand[wg]
+            pen = (-delta[wg] - un[good] < -PENETRATION_RTOL * reach[wg, None]) & ~cand[wg]
             missing = pen.any(dim=1)
             cand[wg] |= pen
             work = wg[missing]
@@ -129,13 +127,15 @@ class BatchedCoulomb:
     # ----------------------------------------------------------------------------------------
     def _newton(self, delta, cand, mu):
         """Semi-smooth Newton for samples (S, k) on fixed candidates: forces (S, k, 3), active,
-        stick (S, k), ok (S,), steps taken, failure reason (S,)."""
+        stick (S, k), normal displacements (S, k) mm at the solution, ok (S,), steps taken,
+        failure reason (S,)."""
         C, k = self.C, self.k
         dev = C.device
         S = delta.shape[0]
         f_out = torch.zeros((S, k, 3), dtype=torch.float64, device=dev)
         act_out = torch.zeros((S, k), dtype=torch.bool, device=dev)
         st_out = torch.zeros((S, k), dtype=torch.bool, device=dev)
+        un_out = torch.zeros((S, k), dtype=torch.float64, device=dev)
         ok = torch.zeros(S, dtype=torch.bool, device=dev)
         reason = torch.full((S,), _NOT_SETTLED, dtype=torch.int64, device=dev)
         rows = torch.arange(S, device=dev)
@@ -157,13 +157,14 @@ class BatchedCoulomb:
             done = keep & (res <= self.tol) & (new_active == active).all(dim=1)
             d = rows[done]
             f_out[d], act_out[d], st_out[d] = f_new[done], active[done], stick[done] & active[done]
+            un_out[d] = u_new[done][..., 2]
             ok[d] = True
             go = keep & ~done
             rows, active, stick = rows[go], new_active[go], new_stick[go]
             f, u = f_new[go], u_new[go]
             if rows.numel() == 0:
                 break
-        return f_out, act_out, st_out, ok, steps, reason
+        return f_out, act_out, st_out, un_out, ok, steps, reason
 
     def _predictors(self, delta, cand, mu, f, u):
         """Natural residual relative to the largest normal force (s,), and the next active and
