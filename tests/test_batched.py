@@ -393,3 +393,48 @@ def test_batched_generator_draws_coulomb_coefficients(small_mesh, monkeypatch):
     np.testing.assert_array_equal(held.indenter, free.indenter)
     lateral = np.abs(held.displacement_mm[:, : small_mesh.n_plane, :2] - free.displacement_mm[:, : small_mesh.n_plane, :2])
     assert lateral.max() > 0.01  # mm: friction holds the surface where frictionless contact lets it slide
+
+
+def test_concatenated_bank_with_procedural_faces_equals_the_indenters(pad):
+    """EnvelopeBank.concat of named indenters and procedural faces (grids of another pitch)
+    samples each as its own numpy envelope does (EnvelopeGrid.sample_mm: another code path)."""
+    from tactile_deploy.training.config import ProceduralFaces, SyntheticData
+    from tactile_deploy.training.data import procedural_faces
+
+    spec = SyntheticData(n_samples=1, procedural=ProceduralFaces(count=4, share=0.5, seed=11))
+    faces = procedural_faces(spec)
+    assert [f.name for f in faces] == [f.name for f in procedural_faces(spec)]  # same faces every call
+    assert all(f.name.startswith("procedural_") for f in faces)
+    named = [get_indenter(n) for n in ("analytic_sphere_r3", "flat_punch")]
+    bank = EnvelopeBank.concat([EnvelopeBank.from_indenters(named), EnvelopeBank.from_indenters(faces)])
+    indenters = named + faces
+    rng = np.random.default_rng(8)
+    xy = pad.vertices[: pad.n_plane, :2]
+    index = np.arange(len(indenters)).repeat(2)
+    poses = random_poses(rng, len(index), 6.0, (0.3, 1.2))
+    got = bank.intrusion_mm(torch.as_tensor(index), poses_tensor(poses), torch.as_tensor(xy)).numpy()
+    for i, pose in enumerate(poses):
+        ref = indenters[index[i]].intrusion_mm(xy, pose)
+        np.testing.assert_array_equal(np.isfinite(got[i]), np.isfinite(ref))
+        np.testing.assert_allclose(got[i][np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-12)
+    assert all(np.isfinite(got[i]).any() for i in range(len(index)))  # every face reaches the pad
+
+
+def test_batched_generator_presses_procedural_faces(small_mesh, monkeypatch):
+    """With procedural faces at share 1 every contact presses one of them; at share 0.5 both kinds
+    occur; without them the draws are those of the named indenters alone."""
+    import tactile_deploy.pad.asset as asset
+    from tactile_deploy.training.config import ProceduralFaces, SyntheticData
+    from tactile_deploy.training.data import generate_batched
+
+    monkeypatch.setattr(asset, "load_pad", lambda *a, **k: small_mesh)
+    spec = SyntheticData(n_samples=16, seed=3, indenters=("sphere_r4", "cube_corner"), radius_max_mm=3.0,
+                         depth_min_mm=0.3, depth_max_mm=0.8, generator="batched")
+    named = generate_batched(spec)
+    assert set(named.indenter) <= {"sphere_r4", "cube_corner"}
+    only = generate_batched(spec.model_copy(update={"procedural": ProceduralFaces(count=5, share=1.0)}))
+    assert all(n.startswith("procedural_") for n in only.indenter)
+    assert only.contact_mask.any(axis=1).all() and only.depth_mm.max() > 0.2
+    half = generate_batched(spec.model_copy(update={"procedural": ProceduralFaces(count=5, share=0.5)}))
+    kinds = {n.startswith("procedural_") for n in half.indenter}
+    assert kinds == {True, False}

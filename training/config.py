@@ -121,6 +121,20 @@ class ModelConfig(StrictModel):
     )
 
 
+class ProceduralFaces(StrictModel):
+    """Random pressing faces beside the named indenters (unseen-shape augmentation).
+
+    The faces are :func:`tactile_deploy.training.shading_net.shapes.random_indenter`'s families
+    (flat punches 0.8-18 mm across, holed faces and rings, bars and lines, pins, curved bodies,
+    edges and steps reaching beyond the view, raised relief), drawn once from ``seed`` and the
+    same on every rank; each contact presses one of them with probability ``share``.
+    """
+
+    count: int = Field(gt=0, le=20000, description="Distinct faces in the set.")
+    share: float = Field(gt=0, le=1, description="Fraction of the contacts pressed with a procedural face.")
+    seed: int = Field(0, ge=0, description="Seed of the faces (not of the poses).")
+
+
 class SyntheticData(StrictModel):
     """Generate the data with the contact simulator (each rank of a distributed run its own shard)."""
 
@@ -130,6 +144,9 @@ class SyntheticData(StrictModel):
         "r < n_samples % W), so 1, 2 or 4 GPUs train on the same amount of data.",
     )
     indenters: tuple[str, ...] | Literal["primitive"] = Field("primitive", description="Names, or all primitives.")
+    procedural: ProceduralFaces | None = Field(
+        None, description="Add random pressing faces to the indenters (None: the named indenters only)."
+    )
     seed: int = Field(0, ge=0, description="Rank r draws from default_rng([seed, r]).")
     depth_min_mm: float = Field(0.2, gt=0)
     depth_max_mm: float = Field(1.2, gt=0)

@@ -217,6 +217,22 @@ class EnvelopeBank:
             return cls([str(n) for n in f["names"]], f["kinds"], f["params"], f["heights"],
                        f["offsets"], device)
 
+    @classmethod
+    def concat(cls, banks) -> "EnvelopeBank":
+        """One bank holding ``banks``' indenters in order (on the first bank's device)."""
+        names, kinds, params, heights, offsets = [], [], [], [], []
+        total = 0
+        for b in banks:
+            names += b.names
+            kinds.append(b.kind.cpu().numpy())
+            params.append(b.params.cpu().numpy())
+            offsets.append(b.offset.cpu().numpy() + total)
+            h = b.heights.cpu().numpy()
+            heights.append(h)
+            total += h.size
+        return cls(names, np.concatenate(kinds), np.concatenate(params), np.concatenate(heights),
+                   np.concatenate(offsets), banks[0].device)
+
     def to(self, device) -> "EnvelopeBank":
         return EnvelopeBank(self.names, self.kind.cpu().numpy(), self.params.cpu().numpy(),
                             self.heights.cpu().numpy(), self.offset.cpu().numpy(), device)
