@@ -161,8 +161,11 @@ def limitations(cfg: dict, variant: str) -> list[str]:
     laws = syn.get("friction", "frictionless")
     laws = laws if isinstance(laws, str) else " + ".join(laws)
     depth = (f"{syn['depth_min_mm']:g}-{syn['depth_max_mm']:g} mm deep" if syn else "as in its dataset")
+    faces = syn.get("procedural")
+    shapes = "primitive indenters" + (
+        f" and {faces['count']:,} procedural pressing faces ({faces['share']:.0%} of the contacts)" if faces else "")
     out = [
-        f"Trained on simulated depth maps of primitive indenters ({laws} contact, linear-elastic FEM, nu = "
+        f"Trained on simulated depth maps of {shapes} ({laws} contact, linear-elastic FEM, nu = "
         f"{syn.get('nu', 0.48)}, {depth}); real sensor maps need the self-supervised adaptation step.",
         "The 5,380-node mesh smooths contact features finer than ~2 mm.",
         "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
