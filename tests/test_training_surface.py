@@ -4,12 +4,15 @@ train + export + parity run, the metrics against hand-made errors."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxscript")
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_anchor_is_the_bilinear_read_of_the_depth_map(pad):
@@ -322,3 +325,27 @@ def test_hybrid_int8_lift_follows_presses_larger_than_any_seen(pad, tmp_path):
     ref_rms = np.sqrt(np.mean(ref**2))
     assert np.sqrt(np.mean((lateral(dynamic) - ref) ** 2)) < 0.10 * ref_rms
     assert np.sqrt(np.mean((lateral(static) - ref) ** 2)) > 0.5 * ref_rms  # the saturation the dynamic range avoids
+
+
+def test_init_weights_start_a_run_from_a_bundle():
+    """``init_weights``: the shipped bundle's trained modules and data scales replace a fresh model's
+    (fine-tuning starts where the bundle ended); a bundle of another model is refused by name."""
+    from tactile_deploy.training.config import TrainConfig
+    from tactile_deploy.training.errors import UsageError
+    from tactile_deploy.training.train import build_model, load_bundle, start_from, trained_prefixes
+
+    shipped, bundle = load_bundle(ROOT / "exported" / "gelslim_mesh.pt")
+    cfg = TrainConfig.model_validate({**bundle["config"], "init_weights": str(ROOT / "exported" / "gelslim_mesh.pt")})
+    torch.manual_seed(123)
+    model = build_model(cfg)
+    scales = start_from(model, cfg, log=lambda line: None)
+    assert scales.depth_scale_mm == pytest.approx(float(shipped.norm.depth_scale_mm), rel=1e-7)
+    ours, theirs = model.state_dict(), shipped.state_dict()
+    kept = [k for k in theirs if k.startswith(trained_prefixes(cfg))]
+    assert len(kept) > 20
+    for k in kept:
+        assert torch.equal(ours[k], theirs[k]), k
+    other = cfg.model_copy(update={"model": cfg.model.model_copy(update={
+        "image": cfg.model.image.model_copy(update={"widths": (8, 16, 32, 64, 128)})})})
+    with pytest.raises(UsageError, match="init_weights .*same model"):
+        start_from(build_model(other), other, log=lambda line: None)

@@ -277,6 +277,10 @@ class TrainConfig(StrictModel):
     threads: int | None = Field(None, gt=0, description="torch intra-op threads (CPU).")
     model: ModelConfig = Field(default_factory=ModelConfig)
     data: DataConfig
+    init_weights: str | None = Field(
+        None, description="A training bundle (model.pt, or its slim bundle) of the same model whose weights and "
+        "data scales start this run (fine-tuning); None: a fresh initialisation from seed.",
+    )
     image_vae: StageConfig | None = Field(
         default_factory=lambda: StageConfig(epochs=20),
         description="Pre-train the image VAE alone (None: the surface stage trains it from scratch with the decoder).",

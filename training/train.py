@@ -479,6 +479,8 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     model = build_model(cfg)
 
     train_data, val_data, scales = prepare_data(cfg, model, dist, device, log)
+    if cfg.init_weights is not None:
+        scales = start_from(model, cfg, log)
     model.to(device)
     tr, va = _Tensors(train_data, model, device), _Tensors(val_data, model, device)
     sets = {True: tr, False: va}
@@ -749,6 +751,21 @@ def plot_curves(history: dict, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
+
+
+def start_from(model: Predictor, cfg: TrainConfig, log: Callable[[str], None]):
+    """Load ``cfg.init_weights`` into ``model`` (weights and the data scales, which replace the
+    ones just computed from this run's data); returns those scales. The bundle's model settings must
+    be this run's."""
+    start, bundle = load_bundle(cfg.init_weights)
+    theirs = TrainConfig.model_validate(bundle["config"]).model.model_dump(mode="json")
+    if theirs != cfg.model.model_dump(mode="json"):
+        raise UsageError(f"init_weights {cfg.init_weights}: trained with model settings {theirs}, this run has "
+                         f"{cfg.model.model_dump(mode='json')}; start from a bundle of the same model")
+    model.load_state_dict(start.state_dict())
+    scales = Scales(float(model.norm.depth_scale_mm), tuple(float(v) for v in model.norm.displacement_scale_mm))
+    log(f"weights and data scales from {cfg.init_weights} (depth scale {scales.depth_scale_mm:.4f} mm)")
+    return scales
 
 
 def load_bundle(path: str | Path, device: str = "cpu") -> tuple[Predictor, dict]:
