@@ -411,3 +411,11 @@ def test_augmented_twin_writes_the_run_formats(tiny_run, tmp_path):
     assert back.model_dump(mode="json", exclude_unset=True) == finite_or_null(json.loads(json.dumps(metrics)))
     assert back.twin_of.bundle == str(root / "run" / "model.pt") and back.scales is None
     assert back.decoders["lean"].heldout_augmented.n_samples == back.n_samples == 2
+
+
+def test_missing_init_weights_is_refused_before_any_data(tmp_path, capsys):
+    cfg = tiny_config(tmp_path / "run", tmp_path / "data.npz")
+    cfg["init_weights"] = str(tmp_path / "nowhere" / "model.pt")
+    err = _error(capsys, ["train", "--config", _write(tmp_path / "cfg.json", cfg)])
+    assert f"init_weights: {tmp_path / 'nowhere' / 'model.pt'} is not a file" in err, err
+    assert not (tmp_path / "data.npz").exists()  # refused before generating the data

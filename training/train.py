@@ -471,6 +471,9 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     run_dir = Path(cfg.run_dir)
     check_resume(cfg, run_dir)
     check_data(cfg.data, dist.rank, dist.world)
+    if cfg.init_weights is not None and not Path(cfg.init_weights).is_file():  # before minutes of data
+        raise UsageError(f"init_weights: {cfg.init_weights} is not a file; give a training bundle (model.pt) or "
+                         "set init_weights to null")
     if dist.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         _remove_partials(run_dir)
