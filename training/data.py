@@ -279,8 +279,8 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     else:
         bank = EnvelopeBank.from_indenters([get_indenter(n) for n in named], device)
     faces = procedural_faces(spec)
-    if faces:
-        bank = EnvelopeBank.concat([bank, EnvelopeBank.from_indenters(faces, device)])
+    if faces:  # built on the host, sent to the device once by concat
+        bank = EnvelopeBank.concat([bank, EnvelopeBank.from_indenters(faces)])
     names = bank.names
     device = torch.device(device)
     # on a GPU the operators are factored there in ~2 s; on a CPU the contact simulator's cache is reused
