@@ -137,7 +137,8 @@ def test_targets_and_table_of_an_evaluation_report():
 
 @pytest.fixture(scope="module")
 def surface_run(tmp_path_factory, pad):
-    """A tiny surface-anchored run on the CPU: 32 contacts of a frictionless + stick + Coulomb mixture."""
+    """A tiny surface-anchored run on the CPU: 32 contacts of a frictionless + stick + Coulomb mixture, with
+    the deepest-node term on."""
     from tactile_deploy.training.config import TrainConfig
     from tactile_deploy.training.train import train
 
@@ -153,7 +154,8 @@ def surface_run(tmp_path_factory, pad):
             "depth_min_mm": 0.3, "depth_max_mm": 1.0, "contact_radius_mm": 7.5, "formulation": "standard",
             "friction": ["frictionless", "stick", "coulomb"]}},
         "image_vae": None, "mesh_vae": None, "lean_decoder": None, "projection": None, "finetune": None,
-        "surface": {**stage, "image_weight": 1.0, "train_ood_decoder": True, "contact_weight": 30.0},
+        "surface": {**stage, "image_weight": 1.0, "train_ood_decoder": True, "contact_weight": 30.0,
+                    "deepest_weight": 1.0},
         "ood_decoder": stage,
     })
     metrics = train(cfg, log=lambda line: None)
@@ -172,6 +174,7 @@ def test_surface_train_export_parity(surface_run, pad, tmp_path):
     losses = [h["train_loss"] for h in history["surface"]]
     assert len(losses) == 3 and losses[-1] < losses[0]
     assert "val_contact_patch_rmse_um" in history["surface"][-1]
+    assert history["surface"][-1]["train_deepest_rel"] > 0  # the deepest-node term ran
     held = np.load(run / "heldout.npz")
     assert held["contact_mask"].shape == (len(held["depth_mm"]), pad.n_plane) and held["contact_mask"].any()
     assert metrics["mesh_metrics"]["contact_patch_rmse_um"] > 0
@@ -349,3 +352,33 @@ def test_init_weights_start_a_run_from_a_bundle():
         "image": cfg.model.image.model_copy(update={"widths": (8, 16, 32, 64, 128)})})})
     with pytest.raises(UsageError, match="init_weights .*same model"):
         start_from(build_model(other), other, log=lambda line: None)
+
+
+def test_deepest_node_term_is_the_evaluations_deepest_node_error_squared():
+    """The training term against training/metrics.py's deepest-node error on random contacts: with
+    every true deepest depth above the floor it is the mean of (error % / 100)^2; below the floor the
+    error is taken against the floor."""
+    from tactile_deploy.training.metrics import mesh_metrics
+    from tactile_deploy.training.train import deepest_node_term
+
+    rng = np.random.default_rng(5)
+    n_plane, n = 50, 150
+    true = rng.normal(0.0, 0.01, (6, n, 3))
+    true[np.arange(6), rng.integers(0, n_plane, 6), 2] = -rng.uniform(0.2, 1.0, 6)  # one clear deepest node each
+    pred = true + rng.normal(0.0, 0.02, true.shape)
+    pct = []
+    for i in range(6):
+        m = mesh_metrics(pred[i: i + 1], true[i: i + 1], None, n_plane, free_layers=2)
+        pct.append(m["deepest_node_error_pct"]["mean"])
+    want = np.mean((np.asarray(pct) / 100.0) ** 2)
+    got = float(deepest_node_term(torch.as_tensor(pred), torch.as_tensor(true), n_plane, floor=0.05))
+    assert abs(got - want) < 1e-12 * max(want, 1.0) + 1e-15
+    # a contact shallower than the floor: its error is divided by the floor, not by its depth
+    shallow = true[:1].copy()
+    shallow[0, :n_plane, 2] = np.minimum(shallow[0, :n_plane, 2], 0.0) * 0.01  # deepest ~2-10 um
+    d = -shallow[0, :n_plane, 2].min()
+    k = int(np.argmin(shallow[0, :n_plane, 2]))
+    p = shallow.copy()
+    p[0, k, 2] -= 0.004  # 4 um deeper
+    got = float(deepest_node_term(torch.as_tensor(p), torch.as_tensor(shallow), n_plane, floor=0.05))
+    assert d < 0.05 and abs(got - (0.004 / 0.05) ** 2) < 1e-12

@@ -225,6 +225,15 @@ class SurfaceStageConfig(StageConfig):
 
     surface_weight: float = Field(1.0, ge=0, description="Extra weight of the sensing layer's nodes in the mesh MSE.")
     contact_weight: float = Field(4.0, ge=0, description="Extra weight of the sensing nodes in contact in the mesh MSE.")
+    deepest_weight: float = Field(
+        0.0, ge=0, description="Weight of the deepest-node term: per contact, the squared relative error of the "
+        "predicted depth at the truth's deepest sensing node, (d_pred - d) / max(d, deepest_floor_mm), averaged over "
+        "the batch (the evaluation's deepest-node error, squared; 0: off).",
+    )
+    deepest_floor_mm: float = Field(
+        0.05, gt=0, description="Depth below which the deepest-node term's relative error is taken against this "
+        "depth instead, mm (so barely touching contacts do not dominate it).",
+    )
     image_weight: float = Field(
         0.1, ge=0, description="Weight of the image VAE loss (its decoder trains too; 0 with train_encoder false)."
     )

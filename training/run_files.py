@@ -138,6 +138,10 @@ class EpochRecord(StrictModel):
     train_contact_patch_rmse_um: float | None = Field(None, ge=0, description="Per-node Euclidean "
                                                       "RMS over the contact patch, um.")
     val_contact_patch_rmse_um: float | None = Field(None, ge=0, description="The same, held out.")
+    train_deepest_rel: float | None = Field(None, ge=0, description="Mean squared relative depth error of "
+                                            "each contact's deepest sensing node (surface stage, where its "
+                                            "term is on; training/train.py deepest_node_term).")
+    val_deepest_rel: float | None = Field(None, ge=0, description="The same, held out.")
     train_image_mse: float | None = Field(None, ge=0, description="Image VAE MSE (surface stage).")
     val_image_mse: float | None = Field(None, ge=0, description="The same, held out.")
     train_ood_image_mse: float | None = Field(None, ge=0, description="Lean image decoder MSE.")

@@ -131,12 +131,15 @@ class SurfaceTrainer(torch.nn.Module):
         return pred, self.image_decoder(z), mu, logvar, lean
 
 
-def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented: Callable | None = None):
+def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented: Callable | None = None,
+                 z_scale_mm: float = 1.0):
     """Step of the surface stage: weighted mesh MSE of the surface-anchored path (every free node 1,
     + ``surface_weight`` on the sensing layer, + ``contact_weight`` on its nodes in contact) +
+    ``deepest_weight`` x the deepest node's squared relative depth error (:func:`deepest_node_term`) +
     ``image_weight`` x the image VAE loss (augmented map in, clean map out). Metrics: ``mse`` (of
     normalised displacements, all nodes and axes), ``contact_mse`` (per axis, sensing nodes in
-    contact), ``image_mse``."""
+    contact), ``deepest_rel`` (RMS relative error of the deepest node, where the term is on),
+    ``image_mse``. ``z_scale_mm``: the displacement scale of the z axis (normalised -> mm)."""
 
     def step(m, idx, train):
         t = sets[train]
@@ -151,6 +154,10 @@ def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented:
         mse = err2.mean() / 3
         loss = (w * err2).mean() / 3
         metrics = {"mse": mse.detach()}
+        if stage.deepest_weight > 0:
+            rel2 = deepest_node_term(pred, t.disp[idx], n_plane, stage.deepest_floor_mm / z_scale_mm)
+            loss = loss + stage.deepest_weight * rel2
+            metrics["deepest_rel"] = rel2.detach()
         if contact is not None:
             metrics["contact_mse"] = ((err2[:, :n_plane] * contact).sum() / contact.sum().clamp(min=1) / 3).detach()
         if stage.image_weight > 0:
@@ -165,6 +172,20 @@ def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented:
         return loss, metrics
 
     return step
+
+
+def deepest_node_term(pred: torch.Tensor, true: torch.Tensor, n_plane: int, floor: float) -> torch.Tensor:
+    """Mean over the batch of ((d_pred - d) / max(d, floor))^2 at each contact's deepest sensing node.
+
+    pred, true : (B, n, 3) displacements (z out of the gel; any one scale for both), sensing layer first
+    (n_plane nodes); d = -true z of the node with the largest -true z, d_pred = -pred z there; floor in
+    the same units. The evaluation's deepest-node error (training/metrics.py) as a fraction, squared."""
+    depth = -true[:, :n_plane, 2]
+    k = depth.argmax(dim=1)
+    rows = torch.arange(len(k), device=k.device)
+    d = depth[rows, k]
+    d_pred = -pred[rows, k, 2]
+    return (((d_pred - d) / d.clamp(min=floor)) ** 2).mean()
 
 
 def _batches(n: int, batch: int, rng: np.random.Generator | None, n_batches: int | None = None):
@@ -511,7 +532,8 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             for p in [*model.image_vae.decoder.parameters(), *model.image_vae.encoder.logvar.parameters()]:
                 p.requires_grad_(False)
         hist["surface"] = run_stage(
-            "surface", trainer, surface_step(sets, mask, model.anchor.m, cfg.surface, augmented), tr.n, va.n,
+            "surface", trainer, surface_step(sets, mask, model.anchor.m, cfg.surface, augmented,
+                                             float(model.norm.displacement_scale_mm[2])), tr.n, va.n,
             cfg.surface, run_dir, dist, device, cfg.seed, log, scale_mm,
         )
         _freeze(model.surface_decoder)
