@@ -89,7 +89,8 @@ def check_file_list(files: set[str]) -> None:
     for name in ("gelslim_mesh.onnx", "gelslim_mesh.json", "gelslim_mesh.md", "gelslim_readout.onnx",
                  "gelslim_readout.json", "gelsight_mini_readout.onnx", "gelsight_mini_readout.json",
                  "gelsight_mini_readout.md", "digit_readout.onnx", "digit_readout.json", "digit_readout.md",
-                 "gelslim_mesh_fp32.onnx", "gelslim_mesh_adapt/step.pt2",
+                 "gelslim_mesh_fp32.onnx", "gelslim_mesh_adapt/step.pt2", "gelslim_mesh_grip.onnx",
+                 "gelslim_mesh_grip.json", "gelslim_mesh_grip.md",
                  "gelslim_mesh_adapt/filter.onnx", "gelslim_mesh_adapt/card.json"):
         assert f"tactile_deploy/exported/{name}" in files, name
     # not shipped: training bundles, figures, the scripts and configs that rebuild the plugins

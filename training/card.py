@@ -170,6 +170,15 @@ def limitations(cfg: dict, variant: str) -> list[str]:
         "The 5,380-node mesh smooths contact features finer than ~2 mm.",
         "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
     ]
+    trained_laws = {laws} if isinstance(laws, str) else set(laws.split(" + "))
+    if "frictionless" not in trained_laws:
+        out.append("For gels that grip the object (Coulomb friction, sticking contact): a depth map does not show "
+                   "whether the gel slid, and on a gel that slides freely this graph's contact patch is far off "
+                   "(see the evaluation's frictionless rows); choose the graph by the gel (docs/predictor.md).")
+    elif trained_laws == {"frictionless"}:
+        out.append("For gels that slide freely on the object (frictionless contact): under Coulomb friction or "
+                   "sticking contact the surface moves sideways in a way a depth map does not show (see the "
+                   "evaluation's friction rows); choose the graph by the gel (docs/predictor.md).")
     if variant.startswith(("surface", "hybrid")):
         out.append("The sensing nodes follow the depth map: an error of the depth map (read-out, camera view) "
                    "is an error of the mesh where it is, unless it looks like the noise the model was trained "
@@ -255,7 +264,8 @@ def render_markdown(card: dict) -> str:
         "## Files",
         "",
         f"- `{card['files']['onnx']}` ({card['files']['onnx_mb']} MiB, sha256 `{card['files']['onnx_sha256'][:16]}...`)",
-        f"- `{card['files']['reference_fp32']}`: fp32 graph of the same weights",
+        *([f"- `{card['files']['reference_fp32']}`: fp32 graph of the same weights"]
+          if card["files"]["reference_fp32"] != card["files"]["onnx"] else ["- the graph is fp32 itself (no twin)"]),
         "",
         "## Held-out accuracy (shipped graph)",
         "",
