@@ -318,3 +318,18 @@ def test_held_out_out_of_range_shows_the_value(plugin_copy, value):
     res, out = _cli("adapt", "--sensor", plugin_copy, "--held-out", value)
     _one_error(res, out)
     assert f"--held-out must be a share of the frames from 0.01 to 0.9, got {value}" in out, out
+
+
+def test_a_model_without_an_adaptation_step_names_the_command_that_exports_one(tmp_path):
+    """A plugin that runs the graph for gels that grip (no step shipped for it): `adapt` stops
+    before collecting frames and names the export-adapt command with the model's bundle."""
+    from tactile_deploy.runtime.plugins import copy_plugin
+
+    grip = ROOT / "exported" / "gelslim_mesh_grip.onnx"
+    folder = copy_plugin(ROOT / "plugins" / "gelslim2", tmp_path / "grip1", model=grip)
+    res, out = _cli("adapt", "--sensor", folder, "--source", "demo", "--steps", "1", "--threads", "1")
+    _one_error(res, out)
+    flat = " ".join(out.split())
+    assert "has no adaptation step" in flat and "gelslim_mesh_grip_adapt" in flat, out
+    assert f"export-adapt --bundle {grip.with_suffix('.pt')} --onnx {grip}" in flat, out
+    assert not (folder / "adapted").exists()

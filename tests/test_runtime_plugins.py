@@ -318,3 +318,28 @@ def test_copy_keeps_the_shared_files_and_never_overwrites(tmp_path):
     assert validate_plugin(tmp_path / "cli", check_model=False).ok
     res = runner.invoke(app, ["plugins", "copy", "gelslim2", str(tmp_path / "cli")])
     assert res.exit_code != 0 and "exists" in res.output
+
+
+def test_copy_with_another_model_runs_it_and_refuses_one_of_another_contract(tmp_path):
+    """``plugins copy --model``: the graph for gels that grip in place of the family model (by
+    absolute path and sha256, adapted versions not carried over); a model that is not a mesh model
+    of the plugin's pad, a missing file and --with-adapted are refused, and nothing is left."""
+    from tactile_deploy.checksums import file_sha256
+    from tactile_deploy.runtime.plugins import copy_plugin
+
+    root = Path(__file__).resolve().parent.parent
+    grip = root / "exported" / "gelslim_mesh_grip.onnx"
+    out = copy_plugin(root / "plugins" / "gelslim2", tmp_path / "grip1", model=grip)
+    assert validate_plugin(out).ok
+    copy = SensorPlugin.load(out)
+    assert copy.path_of("model").resolve() == grip.resolve()
+    assert copy.manifest.model.sha256 == file_sha256(grip) and copy.manifest.adapted_model is None
+    for bad, message in ((root / "exported" / "gelsight_mini_readout.onnx", "input named 'depth'"),
+                         (tmp_path / "none.onnx", "no such file")):
+        with pytest.raises(PluginError, match=message):
+            copy_plugin(root / "plugins" / "gelslim2", tmp_path / "bad", model=bad)
+    with pytest.raises(PluginError, match="adapted from its own model"):
+        copy_plugin(root / "plugins" / "gelslim2", tmp_path / "bad", with_adapted=True, model=grip)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grip1"]
+    res = runner.invoke(app, ["plugins", "copy", "gelslim2", str(tmp_path / "cli"), "--model", str(grip)])
+    assert res.exit_code == 0 and "it runs the model" in res.output, res.output

@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from tactile_deploy.adapt.card import CardError
 from tactile_deploy.adapt.report import REPORT_NAME, AdaptationReport
 from tactile_deploy.adapt.step import (
     AdaptSettings,
@@ -204,6 +205,15 @@ def prepare_adaptation(plugin, options: AdaptOptions, step_folder: str | Path | 
     if options.write:
         check_writable(plugin)
     folder = Path(step_folder) if step_folder is not None else default_step_folder(plugin)
+    if step_folder is None and not folder.is_dir():
+        model = plugin.path_of("model")
+        bundle = model.with_suffix(".pt")
+        how = (f"export it from the model's bundle: `python -m tactile_deploy.training export-adapt --bundle "
+               f"{bundle} --onnx {model}`" if bundle.is_file() else
+               "export it from the training bundle the model was exported from: `python -m "
+               f"tactile_deploy.training export-adapt --bundle MODEL.pt --onnx {model}`")
+        raise CardError(f"the plugin's model {model.name} has no adaptation step ({folder} does not exist); "
+                        f"{how}, or pass --step FOLDER")
     step = StepProgram.load(folder, options.device)
     step.check_family_model(plugin.verified_path("model"))
     return step

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -105,6 +106,10 @@ def plugins_copy(
     dest: Path = typer.Argument(..., help="New folder for the copy (must not exist)."),
     with_adapted: bool = typer.Option(False, "--with-adapted",
                                       help="Also copy the adapted model versions."),
+    model: Optional[Path] = typer.Option(
+        None, "--model", help="An ONNX family model for the copy to run instead of the original's, "
+        "checked against the plugin's pad: e.g. exported/gelslim_mesh_grip.onnx for a gel that grips "
+        "the object (Coulomb friction or sticking; docs/predictor.md)."),
 ) -> None:
     """Copy a plugin to a folder of your own (e.g. a writable one to adapt it), keeping the files
     it shares with other plugins (the family model) where they are. The copy's plugin name is
@@ -114,7 +119,7 @@ def plugins_copy(
 
     try:
         original = SensorPlugin.load(name).name
-        out = copy_plugin(name, dest, with_adapted)
+        out = copy_plugin(name, dest, with_adapted, model)
     except (PluginError, OSError) as e:
         fail(str(e))
     current = discover_plugins()[0].get(out.name)
@@ -127,7 +132,8 @@ def plugins_copy(
         else:
             use += "; it shadows no other plugin"
     renamed = "" if out.name == original else f" (renamed from {original!r}; meshes on mesh/{out.name})"
-    console.print(f"copied plugin {original} to {out} as plugin {out.name!r}{renamed}; {use}")
+    runs = f"; it runs the model {model}" if model is not None else ""
+    console.print(f"copied plugin {original} to {out} as plugin {out.name!r}{renamed}{runs}; {use}")
 
 
 @plugins_app.command("schema")

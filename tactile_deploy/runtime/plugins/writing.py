@@ -54,7 +54,7 @@ def write_plugin(folder: str | os.PathLike, manifest_fields: dict, files: dict[s
 
 
 def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
-                with_adapted: bool = False) -> Path:
+                with_adapted: bool = False, model: str | os.PathLike | None = None) -> Path:
     """Copy a plugin folder to ``dest`` (which must not exist) so that the copy works there.
 
     The registry names a plugin by its folder, so the copy's manifest ``name`` is set to
@@ -66,11 +66,27 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
     Files the manifest names outside the plugin folder (the shipped plugins share the family
     model and the learned read-out in ``exported/``) are recorded by absolute path in the copy's
     ``plugin.json``; files inside are copied with the folder. The adapted versions
-    (``adapted/``) are left behind unless ``with_adapted``. The copy is assembled beside ``dest``
-    and renamed into place only after it validates (checksums, shapes; not the model's
-    contract). Returns ``dest`` as an absolute path.
+    (``adapted/``) are left behind unless ``with_adapted``.
+
+    ``model``: an ONNX family model for the copy to run instead of the original's (recorded by
+    absolute path and sha256; e.g. ``exported/gelslim_mesh_grip.onnx``, the graph for gels that
+    grip); the original's adapted versions belong to the original's model and are not carried
+    over (``with_adapted`` is refused with it), and the copy then validates with the model's
+    contract (its pad and node count must be the plugin's). The copy is assembled beside ``dest``
+    and renamed into place only after it validates (checksums, shapes; the model's contract too
+    when ``model`` is given). Returns ``dest`` as an absolute path.
     """
     plugin = SensorPlugin.load(name_or_path)
+    new_model = None
+    if model is not None:
+        new_model = Path(model).expanduser().absolute()
+        if not new_model.is_file():
+            raise PluginError(f"cannot copy plugin {plugin.name!r} with model {new_model}: no such file; "
+                              "give an ONNX family model, e.g. exported/gelslim_mesh_grip.onnx")
+        if with_adapted:
+            raise PluginError(f"cannot copy plugin {plugin.name!r} with another model and its adapted "
+                              "versions: they were adapted from its own model; leave out --with-adapted "
+                              "(adapt the copy with `tactile-deploy adapt`)")
     dest = Path(dest).expanduser().absolute()
     if dest.exists():
         raise PluginError(f"cannot copy plugin {plugin.name!r} to {dest}: it exists; choose a new "
@@ -94,6 +110,9 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
         path = plugin.path_of(key).resolve()
         if not path.is_relative_to(source):
             doc[key]["path"] = path.as_posix()
+    if new_model is not None:
+        doc["model"] = {"path": new_model.as_posix(), "sha256": file_sha256(new_model)}
+        doc["adapted_model"] = None
     staging = dest.parent / f".{dest.name}.copy-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)
@@ -101,7 +120,7 @@ def copy_plugin(name_or_path: str | os.PathLike, dest: str | os.PathLike,
     shutil.copytree(plugin.folder, staging, ignore=ignore)
     try:
         write_json(staging / MANIFEST_NAME, PluginManifest.model_validate(doc).model_dump(mode="json"))
-        report = validate_plugin(staging, check_model=False)
+        report = validate_plugin(staging, check_model=new_model is not None)
         if not report.ok:
             raise PluginError(f"the copy of plugin {plugin.name!r} does not validate: "
                               + "; ".join(report.problems))
