@@ -51,3 +51,23 @@ def test_each_graph_is_right_on_its_own_contact_law(pad, domain, better, worse):
     print(domain, patch)
     assert patch[better.name] <= 45.0, patch
     assert patch[worse.name] >= 4.0 * patch[better.name], patch
+
+
+def test_friction_domains_on_unseen_shapes_press_the_shared_meshes_under_coulomb_friction(shared_data, pad):
+    """The evaluation's extra domains for gels that grip (run only when named): `unseen_shapes_coulomb`
+    presses the shared STL indenters, `noisy_coulomb` adds the sensor noise to Coulomb contacts."""
+    from tactile_deploy.training.evaluation import ALL_DOMAINS, DOMAINS, simulate_domain
+
+    assert "unseen_shapes_coulomb" not in DOMAINS and "unseen_shapes_coulomb" in ALL_DOMAINS
+    shared = shared_data / "indenters"
+    data = simulate_domain("unseen_shapes_coulomb", 3, seed=5, shared_dir=shared)
+    stems = {p.stem for p in shared.glob("*.stl")}
+    assert set(data.indenter) <= stems and len(data.depth_mm) == 3
+    noisy = simulate_domain("noisy_coulomb", 2, seed=5)
+    clean_like = simulate_domain("coulomb", 2, seed=5)
+    assert noisy.depth_mm.shape == clean_like.depth_mm.shape
+    # the image corners lie outside the pad's disc: 0 in a clean map, the 10 um white noise in a noisy one
+    corner = np.s_[:, :8, :8]
+    assert np.all(clean_like.depth_mm[corner] == 0) and np.std(noisy.depth_mm[corner]) > 0.005
+    with pytest.raises(ValueError, match="unknown domain"):
+        simulate_domain("coulomb_everything", 1, seed=5)

@@ -138,15 +138,15 @@ def _main(argv: list[str]) -> int:
 
     if args.command == "evaluate":
         from tactile_deploy.atomic import write_json
-        from tactile_deploy.training.evaluation import DOMAINS, EvaluationReport, run_evaluation
+        from tactile_deploy.training.evaluation import ALL_DOMAINS, DOMAINS, EvaluationReport, run_evaluation
 
         domains = tuple(args.domains.split(",")) if args.domains else DOMAINS
-        unknown = [d for d in domains if d not in DOMAINS]
+        unknown = [d for d in domains if d not in ALL_DOMAINS]
         if unknown:
-            raise UsageError(f"--domains: unknown {', '.join(map(repr, unknown))}; choose among {', '.join(DOMAINS)}")
+            raise UsageError(f"--domains: unknown {', '.join(map(repr, unknown))}; choose among {', '.join(ALL_DOMAINS)}")
         if args.n < 1:
             raise UsageError(f"--n must be >= 1 (contacts per domain), got {args.n}")
-        if "unseen_shapes" in domains and not Path(args.shared).is_dir():
+        if any(d.startswith("unseen_shapes") for d in domains) and not Path(args.shared).is_dir():
             raise UsageError(f"--shared {args.shared}: no such folder (the unseen_shapes domain reads its STL indenters "
                              "there); give the folder, or leave unseen_shapes out of --domains")
         out = _check_output_json(args.out, "--out")

@@ -16,6 +16,10 @@ training: uniform in a disc of radius 12 mm, theta uniform):
 * ``unseen_shapes``: the 16 STL indenters of ``../shared/data/indenters``, never trained on,
   frictionless, depth 0.2-1.2 mm.
 
+Two more, for graphs of gels that grip, run only when named (``--domains``; :data:`ALL_DOMAINS`):
+``unseen_shapes_coulomb`` (the shared STL indenters with Coulomb friction, mu as ``coulomb``) and
+``noisy_coulomb`` (the ``coulomb`` contacts' maps with the ``noisy`` domain's noise).
+
 Methods: each ONNX model (onnxruntime, as the runtime runs it) and the **physics lift** that
 needs no learning (:class:`tactile_deploy.fem.surface_to_volume.SurfaceToVolume`: the depth map as
 the sensing surface's normal displacement, read where each node has moved to in 3 passes, the
@@ -39,6 +43,8 @@ from tactile_deploy.fileformat import StrictModel
 from tactile_deploy.training.metrics import MeshMetrics
 
 DOMAINS = ("primitives", "coulomb", "stick", "large_strain", "noisy", "unseen_shapes")
+#: Every domain: the default ones, then those run only when named.
+ALL_DOMAINS = DOMAINS + ("unseen_shapes_coulomb", "noisy_coulomb")
 DOMAIN_LABELS = {
     "primitives": "primitives, frictionless",
     "coulomb": "Coulomb friction, mu 0.3-1.5",
@@ -46,6 +52,8 @@ DOMAIN_LABELS = {
     "large_strain": "large strain (neo-Hookean), depth 0.6-1.2 mm",
     "noisy": "noisy maps: 10 um white + 20 um smooth",
     "unseen_shapes": "unseen shapes (shared STL indenters)",
+    "unseen_shapes_coulomb": "unseen shapes, Coulomb friction, mu 0.3-1.5",
+    "noisy_coulomb": "noisy maps, Coulomb friction, mu 0.3-1.5",
 }
 #: Targets per domain: (largest contact-patch RMSE um, largest mean |deepest-node error| %, least
 #: lift_ratio); None where the domain has no such target.
@@ -56,6 +64,8 @@ TARGETS = {
     "stick": (50.0, None, 1.5),
     "large_strain": (50.0, None, 1.5),
     "noisy": (50.0, None, 1.5),
+    "unseen_shapes_coulomb": (30.0, 3.0, None),
+    "noisy_coulomb": (50.0, None, 1.5),
 }
 PHYSICS_LIFT = "physics lift"
 
@@ -81,7 +91,7 @@ class EvaluationReport(StrictModel):
     models: dict[str, str] = Field(description="Label -> the ONNX model evaluated.")
     seed: int = Field(ge=0, description="Seed of the fresh contacts (no training run uses it).")
     metrics: str = Field(description="Where the figures are defined.")
-    domains: dict[str, DomainResult | DomainNotMeasured] = Field(description=f"Domain ({', '.join(DOMAINS)}) -> result.")
+    domains: dict[str, DomainResult | DomainNotMeasured] = Field(description=f"Domain ({', '.join(ALL_DOMAINS)}) -> result.")
 
 
 class DomainUnavailable(RuntimeError):
@@ -104,18 +114,19 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
     from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
 
-    if domain not in DOMAINS:
-        raise ValueError(f"unknown domain {domain!r}; known: {', '.join(DOMAINS)}")
-    if domain == "unseen_shapes":
+    if domain not in ALL_DOMAINS:
+        raise ValueError(f"unknown domain {domain!r}; known: {', '.join(ALL_DOMAINS)}")
+    if domain.startswith("unseen_shapes"):
         if shared_dir is None or not shared_dir.is_dir():
             raise FileNotFoundError(f"shared indenter folder {shared_dir} not found: place ../shared beside the checkout")
         names = sorted(str(p) for p in shared_dir.glob("*.stl"))
     else:
         names = list(list_indenters("primitive"))
     indenters = [get_indenter(n_) for n_ in names]
-    friction = {"stick": "stick", "coulomb": "coulomb"}.get(domain, "frictionless")
+    coulomb = domain in ("coulomb", "unseen_shapes_coulomb", "noisy_coulomb")
+    friction = "coulomb" if coulomb else {"stick": "stick"}.get(domain, "frictionless")
     material = Material(nu=0.48, friction=friction)
-    sim = None if domain == "coulomb" else get_simulator(material)
+    sim = None if coulomb else get_simulator(material)
     cam = get_camera()
     effect = None
     depth_range = (0.2, 1.2)
@@ -124,7 +135,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
 
         effect = get_effect("hyperelastic", {"strength": 1.0})
         depth_range = (0.6, 1.2)
-    rng = np.random.default_rng([seed, DOMAINS.index(domain)])
+    rng = np.random.default_rng([seed, ALL_DOMAINS.index(domain)])
     depth, disp, mask, ind = [], [], [], []
     while len(depth) < n:
         k = int(rng.integers(len(indenters)))
@@ -133,7 +144,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
         pose = ContactPose(x_mm=r * math.cos(phi), y_mm=r * math.sin(phi), theta_deg=360 * rng.random(),
                            depth_mm=float(rng.uniform(*depth_range)))
         try:
-            if domain == "coulomb":
+            if coulomb:
                 mat = Material(nu=0.48, friction="coulomb", mu=float(rng.uniform(0.3, 1.5)))
                 try:
                     s = simulate_contact(indenters[k], pose, mat, cam)
@@ -163,7 +174,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
             continue
         ind.append(Path(names[k]).stem)
     depth_arr = np.asarray(depth, np.float32)
-    if domain == "noisy":
+    if domain.startswith("noisy"):
         depth_arr = add_sensor_noise(depth_arr, np.random.default_rng([seed, 99]))
     return DomainData(depth_arr, np.asarray(disp, np.float32), np.asarray(mask, bool), np.asarray(ind))
 
