@@ -138,7 +138,7 @@ def surface_step(sets: dict, mask: torch.Tensor, n_plane: int, stage, augmented:
     ``deepest_weight`` x the deepest node's squared relative depth error (:func:`deepest_node_term`) +
     ``image_weight`` x the image VAE loss (augmented map in, clean map out). Metrics: ``mse`` (of
     normalised displacements, all nodes and axes), ``contact_mse`` (per axis, sensing nodes in
-    contact), ``deepest_rel`` (RMS relative error of the deepest node, where the term is on),
+    contact), ``deepest_rel`` (mean squared relative depth error of the deepest node, where the term is on),
     ``image_mse``. ``z_scale_mm``: the displacement scale of the z axis (normalised -> mm)."""
 
     def step(m, idx, train):
