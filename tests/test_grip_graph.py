@@ -71,3 +71,19 @@ def test_friction_domains_on_unseen_shapes_press_the_shared_meshes_under_coulomb
     assert np.all(clean_like.depth_mm[corner] == 0) and np.std(noisy.depth_mm[corner]) > 0.005
     with pytest.raises(ValueError, match="unknown domain"):
         simulate_domain("coulomb_everything", 1, seed=5)
+
+
+def test_card_says_which_gel_a_graph_is_for_from_its_training_laws():
+    """The card's limitation line: a graph trained without frictionless contact is for gels that
+    grip, one trained on frictionless contact only for gels that slide, a mixture of both neither."""
+    from tactile_deploy.training.card import limitations
+
+    def lines(friction):
+        cfg = {"data": {"synthetic": {"friction": friction, "depth_min_mm": 0.2, "depth_max_mm": 1.2}}}
+        text = " ".join(limitations(cfg, "surface-fastood"))
+        return "gels that grip the object" in text, "gels that slide freely" in text
+
+    assert lines(["coulomb", "stick"]) == (True, False)
+    assert lines("stick") == (True, False)
+    assert lines("frictionless") == (False, True)
+    assert lines(["frictionless", "stick"]) == (False, False)

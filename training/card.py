@@ -170,7 +170,7 @@ def limitations(cfg: dict, variant: str) -> list[str]:
         "The 5,380-node mesh smooths contact features finer than ~2 mm.",
         "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
     ]
-    trained_laws = {laws} if isinstance(laws, str) else set(laws.split(" + "))
+    trained_laws = set(laws.split(" + "))
     if "frictionless" not in trained_laws:
         out.append("For gels that grip the object (Coulomb friction, sticking contact): a depth map does not show "
                    "whether the gel slid, and on a gel that slides freely this graph's contact patch is far off "
