@@ -158,8 +158,9 @@ def deployed_path(variant: str) -> str:
 def limitations(cfg: dict, variant: str) -> list[str]:
     """What the model does not cover, from its training config."""
     syn = (cfg.get("data") or {}).get("synthetic") or {}
-    laws = syn.get("friction", "frictionless")
-    laws = laws if isinstance(laws, str) else " + ".join(laws)
+    friction = syn.get("friction", "frictionless")
+    trained_laws = [friction] if isinstance(friction, str) else list(friction)
+    laws = " + ".join(trained_laws)
     depth = (f"{syn['depth_min_mm']:g}-{syn['depth_max_mm']:g} mm deep" if syn else "as in its dataset")
     faces = syn.get("procedural")
     shapes = "primitive indenters" + (
@@ -170,12 +171,11 @@ def limitations(cfg: dict, variant: str) -> list[str]:
         "The 5,380-node mesh smooths contact features finer than ~2 mm.",
         "Depth maps must follow the camera convention in 'inputs' (mm, row 0 = largest y).",
     ]
-    trained_laws = set(laws.split(" + "))
     if "frictionless" not in trained_laws:
         out.append("For gels that grip the object (Coulomb friction, sticking contact): a depth map does not show "
                    "whether the gel slid, and on a gel that slides freely this graph's contact patch is far off "
                    "(see the evaluation's frictionless rows); choose the graph by the gel (docs/predictor.md).")
-    elif trained_laws == {"frictionless"}:
+    elif set(trained_laws) == {"frictionless"}:
         out.append("For gels that slide freely on the object (frictionless contact): under Coulomb friction or "
                    "sticking contact the surface moves sideways in a way a depth map does not show (see the "
                    "evaluation's friction rows); choose the graph by the gel (docs/predictor.md).")
