@@ -161,6 +161,13 @@ class SyntheticData(StrictModel):
     mu_range: tuple[float, float] = Field(
         (0.3, 1.5), description="Coulomb contact: friction coefficients drawn uniformly from [low, high] per contact."
     )
+    gel: Literal["linear", "neo-hookean"] | tuple[Literal["linear", "neo-hookean"], ...] = Field(
+        "linear", description="Gel law of the presses: small-strain linear elasticity, or the compressible "
+        "neo-Hookean gel at large deformation (frictionless contact only; the hyperelastic effect's solve, "
+        "tactile_deploy.sensors.effects.hyperelastic, batched by training/simulation/batched_neo_hookean.py). One "
+        "law for every contact law, or one per entry of a friction list (e.g. friction [frictionless, "
+        "frictionless] with gel [linear, neo-hookean]: half of the presses each).",
+    )
     contact_radius_mm: float | None = Field(
         None, gt=0, description="Only sensing nodes within this radius may touch (faster operators; tests)."
     )
@@ -185,6 +192,15 @@ class SyntheticData(StrictModel):
         low, high = self.mu_range
         if not 0.0 <= low <= high:
             raise ValueError(f"mu_range must be [low, high] with 0 <= low <= high, got {list(self.mu_range)}")
+        laws = (self.friction,) if isinstance(self.friction, str) else tuple(self.friction)
+        gels = (self.gel,) if isinstance(self.gel, str) else tuple(self.gel)
+        if len(gels) not in (1, len(laws)):
+            raise ValueError(f"gel must be one law or one per friction law ({len(laws)}: {list(laws)}), "
+                             f"got {len(gels)}: {list(gels)}")
+        for law, gel in zip(laws, gels * len(laws) if len(gels) == 1 else gels):
+            if gel == "neo-hookean" and law != "frictionless":
+                raise ValueError(f"gel 'neo-hookean' is solved with frictionless contact only, got friction "
+                                 f"{law!r} for it; pair it with 'frictionless'")
         return self
 
 

@@ -183,6 +183,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
         xy = pad.vertices[pad.sensing_nodes, :2]
         allowed = np.hypot(xy[:, 0], xy[:, 1]) <= spec.contact_radius_mm
     materials, sims = [], []
+    gels = gel_laws(spec)
     for law in friction_laws(spec):
         materials.append(Material(nu=spec.nu, friction=law))
         # Coulomb contact: the sticking simulator's operators, a coefficient per contact (below)
@@ -206,6 +207,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
     i = contact = rejected = 0
     while i < n:
         material, sim = materials[contact % len(materials)], sims[contact % len(sims)]
+        gel = gels[contact % len(gels)]
         if material.friction == "coulomb":
             material = material.model_copy(update={"mu": float(rng.uniform(*spec.mu_range))})
             sim = CoulombSimulator.sharing(sim, material)
@@ -220,7 +222,10 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 rejected += 1
                 break
             try:
-                s = simulate_contact(indenters[k], pose, material, cam, sim)
+                if gel == "neo-hookean":
+                    s = _neo_hookean_contact(sim, indenters[k], pose, cam)
+                else:
+                    s = simulate_contact(indenters[k], pose, material, cam, sim)
             except (ContactError, ContactSolveError, CoulombSolveError):  # off the pad, or a contact the solver gives up on
                 rejected += 1
                 break
@@ -241,9 +246,41 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                        contact_mask=mask)
 
 
+@dataclass
+class _Press:
+    depth_mm: np.ndarray
+    vertices_mm: np.ndarray
+    rest_vertices_mm: np.ndarray
+    contact_mask: np.ndarray
+
+
+def _neo_hookean_contact(sim, indenter, pose, cam) -> _Press:
+    """One frictionless press of the neo-Hookean gel on the CPU (the hyperelastic effect's solve, as
+    the evaluation's ``large_strain`` domain); ContactError where it touches nothing or does not
+    converge (the pose is redrawn)."""
+    from tactile_deploy.sensors.effects.hyperelastic import HyperelasticConvergenceError, solve_neo_hookean
+    from tactile_deploy.simulation.contact import ContactError
+
+    delta = sim.intrusion(indenter, pose)
+    if not np.any(delta > 0):
+        raise ContactError("the indenter touches no sensing node")
+    try:
+        res, _ = solve_neo_hookean(sim, delta, 1.0)
+    except HyperelasticConvergenceError as e:
+        raise ContactError(str(e)) from None
+    vertices = sim.mesh.vertices + res.displacements_mm
+    return _Press(cam.render(sim.mesh, vertices).depth_mm, vertices, sim.mesh.vertices, res.contact_mask)
+
+
 def friction_laws(spec: SyntheticData) -> tuple[str, ...]:
     """The contact laws of ``spec`` (one, or the mixture's in order)."""
     return (spec.friction,) if isinstance(spec.friction, str) else tuple(spec.friction)
+
+
+def gel_laws(spec: SyntheticData) -> tuple[str, ...]:
+    """The gel law of each contact law of :func:`friction_laws` ("linear" or "neo-hookean")."""
+    gels = (spec.gel,) if isinstance(spec.gel, str) else tuple(spec.gel)
+    return gels * len(friction_laws(spec)) if len(gels) == 1 else gels
 
 
 def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
@@ -253,6 +290,10 @@ def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
     if seed == spec.seed:
         raise ValueError(f"seed {seed} is the training seed: choose another so that no contact is shared")
     return generate(spec.model_copy(update={"n_samples": n, "seed": seed, "generator": "cpu", "envelope_bank": None}))
+
+
+#: Contacts per batch of the batched neo-Hookean solve (:func:`generate_batched`).
+NEO_HOOKEAN_BATCH = 512
 
 
 def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: int = 16384) -> ContactData:
@@ -285,7 +326,7 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     device = torch.device(device)
     # on a GPU the operators are factored there in ~2 s; on a CPU the contact simulator's cache is reused
     operators = "torch" if device.type == "cuda" else "auto"
-    laws = friction_laws(spec)
+    laws, gels = friction_laws(spec), gel_laws(spec)
     g = torch.Generator(device="cpu").manual_seed(int(spec.seed) * 1_000_003 + rank)
     n = spec.n_samples
     depth = np.zeros((n, 128, 128), np.float32)
@@ -295,16 +336,26 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
     i = drawn = 0
     # law k fills samples [bounds[k], bounds[k + 1]): equal shares, in order
     bounds = [round(k * n / len(laws)) for k in range(len(laws) + 1)]
-    sim, sim_law = None, None
+    sim, sim_law, nh = None, None, None
     while i < n:
-        law = laws[max(k for k in range(len(laws)) if bounds[k] <= i)]
-        if law != sim_law:
+        block = max(k for k in range(len(laws)) if bounds[k] <= i)
+        law, gel = laws[block], gels[block]
+        if (law, gel) != sim_law:
             del sim
-            sim = BatchedContactSimulator(pad, Material(nu=spec.nu, friction=law), device, torch.float32,
+            nh = None
+            # the neo-Hookean fixed point runs in float64 (tolerance 1e-6 mm) on the linear operators
+            sim = BatchedContactSimulator(pad, Material(nu=spec.nu, friction=law), device,
+                                          torch.float64 if gel == "neo-hookean" else torch.float32,
                                           formulation=spec.formulation, operators=operators)
-            sim_law = law
+            if gel == "neo-hookean":
+                from tactile_deploy.training.simulation.batched_neo_hookean import BatchedNeoHookean
+
+                nh = BatchedNeoHookean(sim)
+            sim_law = (law, gel)
         end = min(b for b in bounds if b > i)
-        m = min(batch, max(64, 2 * (end - i)))  # a few spare draws for contacts that touch nothing
+        # a few spare draws for contacts that touch nothing; neo-Hookean batches are smaller (their
+        # Anderson history and per-tet temporaries take ~15 MB per sample)
+        m = min(batch if nh is None else min(batch, NEO_HOOKEAN_BATCH), max(64, 2 * (end - i)))
         index = torch.randint(len(named), (m,), generator=g)
         if faces:  # a procedural face with probability share (drawn only then: other streams unchanged)
             pick = torch.rand(m, generator=g, dtype=torch.float64) < spec.procedural.share
@@ -318,7 +369,10 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
         if law == "coulomb":  # drawn only for Coulomb blocks: the other laws' streams are unchanged
             low, high = spec.mu_range
             mu = (low + (high - low) * torch.rand(m, generator=g, dtype=torch.float64)).to(device)
-        res = sim.solve(bank, index.to(device), poses.to(device), mu=mu)
+        if nh is None:
+            res = sim.solve(bank, index.to(device), poses.to(device), mu=mu)
+        else:
+            res, _ = nh.solve_intrusion(sim.intrusion(bank, index.to(device), poses.to(device)))
         keep = (res.solved & res.contact_mask.any(dim=1)).cpu().numpy()
         take = np.flatnonzero(keep)[: end - i]
         drawn += m
