@@ -116,6 +116,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--write-reference", default=None, help="compute the CPU reference here and write it")
     ap.add_argument("--only-reference", action="store_true", help="stop after --write-reference")
     ap.add_argument("--out", default=None, help="results JSON")
+    ap.add_argument("--profile", action="store_true", help="print the top operators of one batch (torch profiler)")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     pad = load_pad()
@@ -171,6 +172,14 @@ def main(argv=None) -> dict:
 
     warm = min(args.batch, args.n)
     run_batches(neo, linear, bank, index[:warm], poses[:warm], args.batch)   # warm-up
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+        with profile(activities=acts) as prof:
+            run_batches(neo, linear, bank, index[:warm], poses[:warm], args.batch)
+        key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+        print(prof.key_averages().table(sort_by=key, row_limit=18), flush=True)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         base = torch.cuda.memory_allocated(device)

@@ -293,7 +293,7 @@ def fresh_contacts(spec: SyntheticData, n: int, seed: int) -> ContactData:
 
 
 #: Contacts per batch of the batched neo-Hookean solve (:func:`generate_batched`).
-NEO_HOOKEAN_BATCH = 512
+NEO_HOOKEAN_BATCH = 2048
 
 
 def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: int = 16384) -> ContactData:
@@ -354,7 +354,7 @@ def generate_batched(spec: SyntheticData, rank: int = 0, device="cpu", batch: in
             sim_law = (law, gel)
         end = min(b for b in bounds if b > i)
         # a few spare draws for contacts that touch nothing; neo-Hookean batches are smaller (their
-        # Anderson history and per-tet temporaries take ~15 MB per sample)
+        # Anderson history and per-tet temporaries take ~22 MB per sample on the shipped pad)
         m = min(batch if nh is None else min(batch, NEO_HOOKEAN_BATCH), max(64, 2 * (end - i)))
         index = torch.randint(len(named), (m,), generator=g)
         if faces:  # a procedural face with probability share (drawn only then: other streams unchanged)

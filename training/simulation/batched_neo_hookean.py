@@ -76,12 +76,14 @@ class TorchNeoHookean:
         B = u.shape[0]
         F = torch.einsum("bmai,maj->bmij", u[:, self.tets], self.grads)
         F = F + torch.eye(3, dtype=self.dtype, device=self.device)
-        J = torch.linalg.det(F)                                                       # (B, m)
+        cof = _cofactors(F)
+        J = (F * cof)[..., 0, :].sum(dim=-1)                                          # (B, m)
         ok = torch.all(J > 0, dim=1)
-        # inverted samples are flagged, and their tets evaluated at J = 1 so nothing overflows
-        Fs = torch.where(ok[:, None, None, None], F, torch.eye(3, dtype=self.dtype, device=self.device))
+        # inverted samples are flagged, and their tets evaluated at F = I so nothing overflows
+        eye = torch.eye(3, dtype=self.dtype, device=self.device)
+        Fs = torch.where(ok[:, None, None, None], F, eye)
         Js = torch.where(ok[:, None], J, 1.0)
-        H = torch.linalg.inv(Fs).transpose(-1, -2)
+        H = torch.where(ok[:, None, None, None], cof, eye) / Js[..., None, None]      # F^-T = cof(F) / J
         Jn = torch.zeros((B, self.n_nodes), dtype=self.dtype, device=self.device)
         Jn.index_add_(1, self.tets_flat, (self.volumes * Js / 4.0).repeat_interleave(4, dim=1))
         Jn = Jn / self.nodal_volumes
@@ -94,6 +96,17 @@ class TorchNeoHookean:
         out.index_add_(1, self.tets_flat, fe.reshape(B, -1, 3))
         ok = ok & torch.isfinite(out).reshape(B, -1).all(dim=1)
         return out, ok
+
+
+def _cofactors(F: torch.Tensor) -> torch.Tensor:
+    """Cofactor matrices of 3 x 3 matrices F (..., 3, 3): ``cof(F) = det(F) F^-T``, element-wise
+    (batched LU routines for millions of 3 x 3 matrices are far slower on a GPU)."""
+    a, b, c = F[..., 0, 0], F[..., 0, 1], F[..., 0, 2]
+    d, e, f = F[..., 1, 0], F[..., 1, 1], F[..., 1, 2]
+    g, h, i = F[..., 2, 0], F[..., 2, 1], F[..., 2, 2]
+    return torch.stack([e * i - f * h, f * g - d * i, d * h - e * g,
+                        c * h - b * i, a * i - c * g, b * g - a * h,
+                        b * f - c * e, c * d - a * f, a * e - b * d], dim=-1).reshape(F.shape)
 
 
 @dataclass
