@@ -163,3 +163,15 @@ def test_generated_neo_hookean_presses_are_neo_hookean_equilibria():
     print(f"largest unbalanced force / contact force: linear {imbalance[0]:.1e}, neo-Hookean {imbalance[1]:.1e}")
     assert imbalance[1] < 1e-5     # measured 1.7e-7 (the displacements are stored in float32)
     assert imbalance[0] > 1e-2     # measured 4.7e-2
+
+
+def test_contact_solve_does_not_depend_on_its_starting_active_sets(small):
+    """The fixed point warm-starts each contact solve from the previous map's active sets; the
+    contact problem's solution is unique, so any start gives the same forces."""
+    _, linear, delta = small
+    cold, active, _ = linear.contact.solve(delta)
+    rng = np.random.default_rng(4)
+    for start in (torch.zeros_like(active), ~active, torch.from_numpy(rng.random(active.shape) < 0.5)):
+        warm, warm_active, _ = linear.contact.solve(delta, start)
+        assert torch.equal(warm_active, active)
+        assert torch.allclose(warm, cold, rtol=0, atol=1e-12)

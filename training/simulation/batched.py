@@ -395,8 +395,14 @@ class BatchedContact:
             self._C_host = self.C64.detach().to("cpu").numpy()
         return self._C_host
 
-    def solve(self, delta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, ContactStats]:
+    def solve(self, delta: torch.Tensor, initial_active: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, ContactStats]:
         """Contact forces at E = 1 for intrusions ``delta`` (B, k) mm (-inf: not covered).
+
+        ``initial_active`` (B, k) bool: the active sets the iteration starts from (default
+        ``delta > 0``), e.g. the previous solution's when ``delta`` changed a little; the
+        solution does not depend on it (the problem's solution is unique), only the number of
+        steps does.
 
         Returns ``forces`` (B, k, b) N in C's dtype (the force of the indenter on each node;
         normal component last; NaN for the samples listed in ``stats.unsolved``), ``active``
@@ -423,7 +429,8 @@ class BatchedContact:
         failures: list[tuple[int, int, int]] = []  # (sample, reason, round)
         for rnd in range(1, self.max_rounds + 1):
             stats.rounds = rnd
-            f, act, un, ok, it, reasons = self._pdas(delta[work], cand[work])
+            f, act, un, ok, it, reasons = self._pdas(
+                delta[work], cand[work], None if initial_active is None or rnd > 1 else initial_active[work])
             stats.iterations = max(stats.iterations, it)
             bad = torch.nonzero(~ok).flatten()
             if bad.numel():
@@ -486,9 +493,10 @@ class BatchedContact:
         except (ContactSolveError, RuntimeError):
             return None
 
-    def _pdas(self, delta, cand):
-        """Primal-dual active sets for samples (S, k): forces (S, k b), active (S, k), normal
-        displacement (S, k) at the solution, ok (S,), iterations, failure reason (S,)."""
+    def _pdas(self, delta, cand, initial=None):
+        """Primal-dual active sets for samples (S, k), started from ``initial`` (S, k) bool or
+        ``delta > 0``: forces (S, k b), active (S, k), normal displacement (S, k) at the
+        solution, ok (S,), iterations, failure reason (S,)."""
         C, b = self.C, self.block
         dt, dev = C.dtype, C.device
         S, k = delta.shape
@@ -499,7 +507,7 @@ class BatchedContact:
         ok = torch.zeros(S, dtype=torch.bool, device=dev)
         reason = torch.full((S,), _NOT_SETTLED, dtype=torch.int64, device=dev)
         rows = torch.arange(S, device=dev)  # rows of the samples still iterating
-        active = (delta > 0) & cand
+        active = ((delta > 0) if initial is None else initial.to(dev)) & cand
         # Active sets of the last _CYCLE_HISTORY steps before the current one (cycle test).
         history = torch.zeros((0, S, k), dtype=torch.bool, device=dev)
         iterations = 0

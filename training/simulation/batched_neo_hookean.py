@@ -87,10 +87,11 @@ class TorchNeoHookean:
         Jn = torch.zeros((B, self.n_nodes), dtype=self.dtype, device=self.device)
         Jn.index_add_(1, self.tets_flat, (self.volumes * Js / 4.0).repeat_interleave(4, dim=1))
         Jn = Jn / self.nodal_volumes
-        i1 = torch.einsum("bmij,bmij->bm", Fs, Fs)
+        i1 = (Fs * Fs).sum(dim=(-2, -1))
         P = self.mu * Js.pow(-2.0 / 3.0)[..., None, None] * (Fs - (i1 / 3.0)[..., None, None] * H)
         pbar = (self.kappa * (Jn - 1.0))[:, self.tets].mean(dim=2)                       # (B, m)
         P = P + (pbar * Js)[..., None, None] * H
+        # f_ai = V sum_j P_ij g_aj
         fe = self.volumes[None, :, None, None] * torch.einsum("bmij,maj->bmai", P, self.grads)
         out = torch.zeros((B, self.n_nodes, 3), dtype=self.dtype, device=self.device)
         out.index_add_(1, self.tets_flat, fe.reshape(B, -1, 3))
@@ -179,9 +180,10 @@ class BatchedNeoHookean:
         n3, m = 3 * self.mesh.n_nodes, len(self.mesh.tets)
         return 8 * (n3 * (4 + 2 * (self.anderson + 1)) + 8 * 9 * m + 2 * self.mesh.n_plane)
 
-    def _map(self, u: torch.Tensor, d: torch.Tensor):
+    def _map(self, u: torch.Tensor, d: torch.Tensor, active: torch.Tensor | None = None):
         """One fixed-point map for samples u (b, n, 3), intrusions d (b, n_plane) ->
-        (new u, contact forces (b, n_plane, 1) at E = 1, ok (b,) bool)."""
+        (new u, contact forces (b, n_plane, 1) at E = 1, ok (b,) bool, active sets (b, n_plane)).
+        ``active``: the contact's active sets to start from (the previous map's)."""
         b = u.shape[0]
         f_int, ok = self.gel.forces(u)
         q = torch.sparse.mm(self.Tt, u.reshape(b, -1).T)                                # (n_q, b)
@@ -189,7 +191,7 @@ class BatchedNeoHookean:
         ub_q = self.strength * (q - self.Kinv @ fq)
         ub = torch.sparse.mm(self.T, ub_q).T.reshape(b, -1, 3)                          # (b, n, 3)
         d_eff = d + ub[:, : self.mesh.n_plane, 2]
-        forces, _, cstats = self.linear.contact.solve(d_eff)
+        forces, active, cstats = self.linear.contact.solve(d_eff, active)
         if cstats.unsolved:
             bad = torch.zeros(b, dtype=torch.bool, device=self.device)
             bad[cstats.unsolved] = True
@@ -197,7 +199,7 @@ class BatchedNeoHookean:
             forces = torch.where(bad[:, None, None], 0.0, forces)
         g = ub + self.linear.displacements_from_forces(forces)
         ok = ok & torch.isfinite(g).reshape(b, -1).all(dim=1)
-        return g, forces, ok
+        return g, forces, ok, active
 
     def solve_intrusion(self, delta: torch.Tensor, render: bool = True):
         """Neo-Hookean contacts for intrusions ``delta`` (B, n_plane) mm at the sensing nodes
@@ -255,11 +257,12 @@ class BatchedNeoHookean:
         hist_x: list[torch.Tensor] = []   # each (b, N): rows follow ``active``
         hist_f: list[torch.Tensor] = []
         failed = []
+        sets = None   # each sample's last contact active set: the next contact solve starts there
         for it in range(1, self.max_iterations + 1):
             if len(active) == 0:
                 break
             b = len(active)
-            g, forces, ok = self._map(u, d)
+            g, forces, ok, sets = self._map(u, d, sets)
             f = (g - u).reshape(b, -1)
             change = f.abs().amax(dim=1)
             ok = ok & torch.isfinite(change)
@@ -274,7 +277,7 @@ class BatchedNeoHookean:
                 failed.append(active[~ok])
             keep = ok & ~conv
             if not bool(keep.all()):
-                active, u, d, f = active[keep], u[keep], d[keep], f[keep]
+                active, u, d, f, sets = active[keep], u[keep], d[keep], f[keep], sets[keep]
                 hist_x = [h[keep] for h in hist_x]
                 hist_f = [h[keep] for h in hist_f]
                 if len(active) == 0:
