@@ -200,7 +200,34 @@ def markdown(result: dict, gpu: dict | None) -> str:
             "(contacts) | results |",
             "|---|---|---:|---:|---|---|",
         ] + gpu_laws
+    nh_rows = _gpu_neo_hookean_rows()
+    if nh_rows:
+        lines += [
+            "",
+            "Large deformation: the neo-Hookean gel (frictionless, the pad mesh; the hyperelastic effect's fixed "
+            "point, batched: `bench/bench_sim_neo_hookean.py`, contacts as the evaluation's large-strain domain, "
+            "0.6-1.2 mm deep; intrusion, linear start, fixed point and depth map in float64), against the linear "
+            "batched path in float64 on the same contacts in the same run, and against the numpy reference "
+            "(`solve_neo_hookean`) on a subset:",
+            "",
+            "| device | neo-Hookean contacts/s | linear contacts/s (same run) | fixed-point maps per contact | "
+            "GPU memory per sample kB | max displacement / force difference vs numpy (contacts) | results |",
+            "|---|---:|---:|---:|---:|---|---|",
+        ] + nh_rows
     return "\n".join(lines)
+
+
+def _gpu_neo_hookean_rows() -> list[str]:
+    """Table rows of the committed neo-Hookean GPU results (bench/results/sim_neo_hookean_*.json)."""
+    rows = []
+    for path in sorted((ROOT / "bench" / "results").glob("sim_neo_hookean_*.json")):
+        doc = json.loads(path.read_text())
+        nh, lin, chk = doc["neo_hookean"], doc["linear_float64"], doc["check"]
+        rows.append(f"| {doc['device']} | {nh['contacts_per_s']:.0f} | {lin['contacts_per_s']:.0f} | "
+                    f"{nh['mean_fixed_point_maps']:.1f} | {nh.get('memory_per_sample_kb', float('nan')):.0f} | "
+                    f"{chk['max_displacement_difference_mm']:.1e} mm / {chk['max_force_difference_n']:.1e} N "
+                    f"({chk['both_solved']}) | `{path.relative_to(ROOT)}` |")
+    return rows
 
 
 def _gpu_friction_rows() -> list[str]:
