@@ -13,8 +13,9 @@ For each family's virtual sensor (``tactile_deploy/assets/sensors/<family>.json`
 3. the same presses' meshes from the physics lift against the FEM's deformed pad: RMSE of the
    sensing nodes within 1.5 contact radii (um, 3-D distance);
 4. 16 presses of the shared indenter meshes (``../shared/data/indenters``, shapes neither the
-   calibration nor any training saw): contact-region RMSE (the true depth above 10 um, grown by
-   4 cells), target 30 um.
+   calibration nor any training saw; seed 99, one per shape): contact-region RMSE (the true depth
+   above 10 um, grown by 4 cells), target 30 um; and a second, larger sample (48 presses, three per
+   shape, seed 123) with its mean per shape, since 16 presses move the mean by several um.
 
     python bench/bench_families.py [--families gelsight_mini,digit] [--no-write]
 """
@@ -35,6 +36,8 @@ sys.path.insert(0, str(ROOT))
 
 INDENTERS = ROOT.parent / "shared" / "data" / "indenters"
 BALL_MM = 1.5
+#: Presses of the second sample of the shared shapes (three per shape).
+SECOND_SHAPE_SAMPLE = 48
 
 
 def family_bench(name: str, tmp: Path) -> list[dict]:
@@ -96,6 +99,8 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
             margin = min(3.0, 0.25 * min(grid.x_max_mm - grid.x_min_mm, grid.y_max_mm - grid.y_min_mm))
             sp = virtual_shape_presses(sensor, grid, shapes, n=16, seed=99, depth_grid=fam.depth_grid,
                                        margin_mm=margin)
+            sp48 = virtual_shape_presses(sensor, grid, shapes, n=SECOND_SHAPE_SAMPLE, seed=123,
+                                         depth_grid=fam.depth_grid, margin_mm=margin)
         depths = np.stack([pipeline.frame_to_depth(f) for f in presses.frames])
         ball = near_contact_errors(depths, presses, depth_grid=fam.depth_grid)
         mesh_err = []
@@ -105,8 +110,11 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
             mesh_err.append(1e3 * np.sqrt(np.mean(np.sum((v[near] - truth[near]) ** 2, axis=1))))
         shape_depths = np.stack([pipeline.frame_to_depth(f) for f in sp.frames])
         shape = contact_region_errors(shape_depths, sp.truths)
+        shape48 = contact_region_errors(np.stack([pipeline.frame_to_depth(f) for f in sp48.frames]),
+                                        sp48.truths)
         results.append({"family": name, "reader": label, "ball": ball, "edge": presses.near_edge,
                         "mesh": np.array(mesh_err), "shape": shape, "shape_names": sp.names,
+                        "shape48": shape48, "shape48_names": sp48.names,
                         "cal": cal.metrics, "t_prepare": t_prepare, "t_cal": t_cal})
     return results
 
@@ -127,23 +135,34 @@ def markdown(results: list[dict]) -> str:
               "(RMSE within 1.5 contact radii against the surface the frames were shaded from, "
               "family depth grid), their physics-lift meshes against the FEM (sensing nodes "
               "within 1.5 contact radii, 3-D RMSE), 16 presses of the 16 shared indenter meshes "
-              "(contact-region RMSE). um."), "",
+              "(contact-region RMSE; seed 99, one per shape) and a second sample of 48 (three per shape, "
+              "seed 123). um."), "",
              "| family | depth from | balls inside: RMSE near mean (worst) | near the edges | mesh vs "
-             "FEM mean (worst) | unseen shapes: contact-region mean (worst) | calibration held-out "
-             "shape mean / worst | targets |",
-             "|---|---|---:|---:|---:|---:|---:|---|"]
+             "FEM mean (worst) | unseen shapes: contact-region mean (worst) | the same, 48 presses: mean "
+             "(worst) | calibration held-out shape mean / worst | targets |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         near, edge = r["ball"]["near"], r["edge"]
-        region = r["shape"]["region"]
+        region, region48 = r["shape"]["region"], r["shape48"]["region"]
         ok = [("balls 20 um", near[~edge].mean() <= 20), ("edges 20 um", near[edge].mean() <= 20),
-              ("shapes 30 um", np.nanmean(region) <= 30)]
+              ("shapes 30 um (both samples)", max(np.nanmean(region), np.nanmean(region48)) <= 30)]
         lines.append(
             f"| {r['family']} | {r['reader']} | {near[~edge].mean():.1f} ({near[~edge].max():.1f}) | "
             f"{near[edge].mean():.1f} | {r['mesh'].mean():.1f} ({r['mesh'].max():.1f}) | "
             f"{np.nanmean(region):.1f} ({np.nanmax(region):.1f}) | "
+            f"{np.nanmean(region48):.1f} ({np.nanmax(region48):.1f}) | "
             f"{r['cal']['held-out shape error mean (um)']:.1f} / "
             f"{r['cal']['held-out shape error worst (um)']:.1f} | "
             + ", ".join(f"{n}: {'met' if v else '**not met**'}" for n, v in ok) + " |")
+    lines += ["", f"Per shape, the {SECOND_SHAPE_SAMPLE}-press sample (contact-region RMSE, mean of the "
+              "shape's presses, um; worst four):", ""]
+    for r in results:
+        per = {}
+        for n_, e in zip(r["shape48_names"], r["shape48"]["region"]):
+            per.setdefault(n_, []).append(e)
+        worst = sorted(((np.nanmean(v), k) for k, v in per.items()), reverse=True)[:4]
+        lines.append(f"* {r['family']}, {r['reader']}: "
+                     + ", ".join(f"{k} {v:.0f}" for v, k in worst))
     lines += ["", "Time: " + "; ".join(
         f"{r['family']} ({r['reader']}): surface operators {r['t_prepare']:.0f} s (once, cached), "
         f"calibration {r['t_cal']:.0f} s" for r in results) + "."]
