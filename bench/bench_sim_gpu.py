@@ -64,14 +64,16 @@ def sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-def draw_contacts(n: int, n_indenters: int, seed: int, device="cpu", radius_mm=RADIUS_MAX_MM):
-    """(index (n,) int64, poses (n, 4) float64: x_mm, y_mm, theta_deg, depth_mm) on ``device``."""
+def draw_contacts(n: int, n_indenters: int, seed: int, device="cpu", radius_mm=RADIUS_MAX_MM, depth_mm=DEPTH_MM):
+    """(index (n,) int64, poses (n, 4) float64: x_mm, y_mm, theta_deg, depth_mm) on ``device``:
+    an indenter uniformly, origin uniform in a disc of ``radius_mm``, rotation uniform, depth
+    uniform in ``depth_mm`` (low, high)."""
     g = torch.Generator(device="cpu").manual_seed(seed)
     index = torch.randint(n_indenters, (n,), generator=g)
     r = radius_mm * torch.sqrt(torch.rand(n, generator=g, dtype=torch.float64))
     phi = 2 * torch.pi * torch.rand(n, generator=g, dtype=torch.float64)
     theta = 360.0 * torch.rand(n, generator=g, dtype=torch.float64)
-    depth = DEPTH_MM[0] + (DEPTH_MM[1] - DEPTH_MM[0]) * torch.rand(n, generator=g, dtype=torch.float64)
+    depth = depth_mm[0] + (depth_mm[1] - depth_mm[0]) * torch.rand(n, generator=g, dtype=torch.float64)
     poses = torch.stack([r * torch.cos(phi), r * torch.sin(phi), theta, depth], dim=1)
     return index.to(device), poses.to(device)
 

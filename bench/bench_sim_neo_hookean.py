@@ -35,21 +35,10 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.bench_sim_gpu import build_bank, sync  # noqa: E402
+from bench.bench_sim_gpu import build_bank, draw_contacts, sync  # noqa: E402
 
 NU = 0.48
 RADIUS_MAX_MM = 12.0
-
-
-def draw(n: int, n_indenters: int, seed: int, depth_mm: tuple[float, float]):
-    """(index (n,) int64, poses (n, 4) float64: x_mm, y_mm, theta_deg, depth_mm), on the CPU."""
-    g = torch.Generator(device="cpu").manual_seed(seed)
-    index = torch.randint(n_indenters, (n,), generator=g)
-    r = RADIUS_MAX_MM * torch.sqrt(torch.rand(n, generator=g, dtype=torch.float64))
-    phi = 2 * torch.pi * torch.rand(n, generator=g, dtype=torch.float64)
-    theta = 360.0 * torch.rand(n, generator=g, dtype=torch.float64)
-    depth = depth_mm[0] + (depth_mm[1] - depth_mm[0]) * torch.rand(n, generator=g, dtype=torch.float64)
-    return index, torch.stack([r * torch.cos(phi), r * torch.sin(phi), theta, depth], dim=1)
 
 
 def cpu_reference(mesh, delta: np.ndarray) -> dict:
@@ -126,7 +115,7 @@ def main(argv=None) -> dict:
                "depth_mm": list(args.depth), "batch": args.batch, "indenters": list(bank.names)}
 
     # -- the CPU reference on the first check-n contacts (their intrusions are the CPU simulator's input)
-    index, poses = draw(args.n, len(bank), args.seed, tuple(args.depth))
+    index, poses = draw_contacts(args.n, len(bank), args.seed, "cpu", RADIUS_MAX_MM, tuple(args.depth))
     check = slice(0, args.check_n)
     if args.write_reference or not args.reference:
         cpu = BatchedContactSimulator(pad, Material(nu=NU), "cpu", torch.float64, operators="cache")
