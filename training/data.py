@@ -223,7 +223,7 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
                 break
             try:
                 if gel == "neo-hookean":
-                    s = _neo_hookean_contact(sim, indenters[k], pose, cam)
+                    s = neo_hookean_press(sim, indenters[k], pose, cam)
                 else:
                     s = simulate_contact(indenters[k], pose, material, cam, sim)
             except (ContactError, ContactSolveError, CoulombSolveError):  # off the pad, or a contact the solver gives up on
@@ -247,17 +247,24 @@ def generate(spec: SyntheticData, rank: int = 0, depths_per_contact: int = 1) ->
 
 
 @dataclass
-class _Press:
+class NeoHookeanPress:
+    """One neo-Hookean press: depth map (R, R) mm, displacements (n, 3) mm, rest positions (n, 3)
+    mm (sensor frame), sensing nodes in contact (n_plane,) bool."""
+
     depth_mm: np.ndarray
-    vertices_mm: np.ndarray
+    displacements_mm: np.ndarray
     rest_vertices_mm: np.ndarray
     contact_mask: np.ndarray
 
+    @property
+    def vertices_mm(self) -> np.ndarray:
+        return self.rest_vertices_mm + self.displacements_mm
 
-def _neo_hookean_contact(sim, indenter, pose, cam) -> _Press:
-    """One frictionless press of the neo-Hookean gel on the CPU (the hyperelastic effect's solve, as
-    the evaluation's ``large_strain`` domain); ContactError where it touches nothing or does not
-    converge (the pose is redrawn)."""
+
+def neo_hookean_press(sim, indenter, pose, cam) -> NeoHookeanPress:
+    """One frictionless press of the neo-Hookean gel on the CPU (the hyperelastic effect's solve),
+    for training data and the evaluation's ``large_strain`` domain; ContactError where it touches no
+    sensing node or does not converge (the pose is redrawn)."""
     from tactile_deploy.sensors.effects.hyperelastic import HyperelasticConvergenceError, solve_neo_hookean
     from tactile_deploy.simulation.contact import ContactError
 
@@ -268,8 +275,8 @@ def _neo_hookean_contact(sim, indenter, pose, cam) -> _Press:
         res, _ = solve_neo_hookean(sim, delta, 1.0)
     except HyperelasticConvergenceError as e:
         raise ContactError(str(e)) from None
-    vertices = sim.mesh.vertices + res.displacements_mm
-    return _Press(cam.render(sim.mesh, vertices).depth_mm, vertices, sim.mesh.vertices, res.contact_mask)
+    return NeoHookeanPress(cam.render(sim.mesh, res.vertices_mm).depth_mm, res.displacements_mm,
+                           res.rest_vertices_mm, res.contact_mask)
 
 
 def friction_laws(spec: SyntheticData) -> tuple[str, ...]:

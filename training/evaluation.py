@@ -113,6 +113,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
     from tactile_deploy.fem.material import Material
     from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
+    from tactile_deploy.training.data import neo_hookean_press
 
     if domain not in ALL_DOMAINS:
         raise ValueError(f"unknown domain {domain!r}; known: {', '.join(ALL_DOMAINS)}")
@@ -128,13 +129,8 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
     material = Material(nu=0.48, friction=friction)
     sim = None if coulomb else get_simulator(material)
     cam = get_camera()
-    effect = None
-    depth_range = (0.2, 1.2)
-    if domain == "large_strain":
-        from tactile_deploy.sensors.effects import get_effect
-
-        effect = get_effect("hyperelastic", {"strength": 1.0})
-        depth_range = (0.6, 1.2)
+    large_strain = domain == "large_strain"
+    depth_range = (0.6, 1.2) if large_strain else (0.2, 1.2)
     rng = np.random.default_rng([seed, ALL_DOMAINS.index(domain)])
     depth, disp, mask, ind = [], [], [], []
     while len(depth) < n:
@@ -155,19 +151,16 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
                 depth.append(s.depth_mm)
                 disp.append(s.vertices_mm - s.rest_vertices_mm)
                 mask.append(s.contact_mask)
-            elif effect is None:
+            elif not large_strain:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
                 depth.append(s.depth_mm)
                 disp.append(s.vertices_mm - s.rest_vertices_mm)
                 mask.append(s.contact_mask)
             else:
-                delta = sim.intrusion(indenters[k], pose)
-                if not np.any(delta > 0):
-                    continue
-                res = effect.correct_contact(sim, delta, sim.solve_intrusion(delta))
-                depth.append(cam.render(sim.mesh, res.vertices_mm).depth_mm)
-                disp.append(res.displacements_mm.astype(np.float32))
-                mask.append(res.contact_mask)
+                s = neo_hookean_press(sim, indenters[k], pose, cam)   # the hyperelastic effect's solve
+                depth.append(s.depth_mm)
+                disp.append(s.displacements_mm.astype(np.float32))
+                mask.append(s.contact_mask)
         except (ContactError, RuntimeError) as e:
             if isinstance(e, DomainUnavailable):
                 raise
