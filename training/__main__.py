@@ -131,6 +131,9 @@ def _main(argv: list[str]) -> int:
     p_eval.add_argument("--seed", type=int, default=2024)
     p_eval.add_argument("--domains", default=None, help="comma-separated subset of the domains")
     p_eval.add_argument("--shared", default="../shared/data/indenters", help="folder of the shared STL indenters")
+    p_eval.add_argument("--gel", choices=("linear", "neo-hookean"), default="linear",
+                        help="gel law of the frictionless domains' truth (primitives, noisy, unseen_shapes; "
+                             "large_strain is neo-Hookean under either; the friction domains need linear)")
     p_eval.add_argument("--card", default=None,
                         help="model card (<model>.json) of the first --model: its 'evaluation' section and markdown "
                              "are rewritten with this report's table (the card must describe that very file)")
@@ -171,7 +174,7 @@ def _main(argv: list[str]) -> int:
         card_path = Path(args.card) if args.card else None
         if card_path is not None:
             card = _card_of(card_path, next(iter(models.values())))
-        report = run_evaluation(models, args.n, args.seed, domains, Path(args.shared))
+        report = run_evaluation(models, args.n, args.seed, domains, Path(args.shared), gel=args.gel)
         EvaluationReport.model_validate(report)  # the committed format (training/evaluation_report.schema.json)
         write_json(out, report)
         print(markdown_table(report))

@@ -16,6 +16,12 @@ training: uniform in a disc of radius 12 mm, theta uniform):
 * ``unseen_shapes``: the 16 STL indenters of ``../shared/data/indenters``, never trained on,
   frictionless, depth 0.2-1.2 mm.
 
+The gel of the frictionless domains (``primitives``, ``noisy``, ``unseen_shapes``) is linear
+elastic unless ``gel="neo-hookean"`` (``--gel neo-hookean``): then their truth is the
+neo-Hookean large-deformation solve of ``large_strain`` at the same poses and depths, the
+truth a graph trained on neo-Hookean contacts is measured against. The friction domains have no
+neo-Hookean truth yet (they are reported as not measured under that gel).
+
 Two more, for graphs of gels that grip, run only when named (``--domains``; :data:`ALL_DOMAINS`):
 ``unseen_shapes_coulomb`` (the shared STL indenters with Coulomb friction, mu as ``coulomb``) and
 ``noisy_coulomb`` (the ``coulomb`` contacts' maps with the ``noisy`` domain's noise).
@@ -35,6 +41,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -68,6 +75,10 @@ TARGETS = {
     "noisy_coulomb": (50.0, None, 1.5),
 }
 PHYSICS_LIFT = "physics lift"
+#: The gel laws of the frictionless domains' truth.
+GELS = ("linear", "neo-hookean")
+#: Domains whose truth follows ``gel``; ``large_strain`` is neo-Hookean under either.
+FRICTIONLESS_DOMAINS = ("primitives", "noisy", "unseen_shapes")
 
 
 class DomainResult(StrictModel):
@@ -90,6 +101,8 @@ class EvaluationReport(StrictModel):
 
     models: dict[str, str] = Field(description="Label -> the ONNX model evaluated.")
     seed: int = Field(ge=0, description="Seed of the fresh contacts (no training run uses it).")
+    gel: Literal["linear", "neo-hookean"] = Field(
+        "linear", description="Gel law of the frictionless domains' truth (primitives, noisy, unseen_shapes).")
     metrics: str = Field(description="Where the figures are defined.")
     domains: dict[str, DomainResult | DomainNotMeasured] = Field(description=f"Domain ({', '.join(ALL_DOMAINS)}) -> result.")
 
@@ -108,8 +121,11 @@ class DomainData:
     indenter: np.ndarray
 
 
-def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = None) -> DomainData:
-    """``n`` contacts of ``domain`` (see the module docstring), deterministic in ``seed``."""
+def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = None,
+                    gel: str = "linear") -> DomainData:
+    """``n`` contacts of ``domain`` (see the module docstring), deterministic in ``seed``; the
+    frictionless domains' truth from the ``gel`` law ("linear" or "neo-hookean"; the same draws
+    under either until a contact one of them rejects is redrawn)."""
     from tactile_deploy.fem.material import Material
     from tactile_deploy.indenters import ContactPose, get_indenter, list_indenters
     from tactile_deploy.simulation.contact import ContactError, get_camera, get_simulator, simulate_contact
@@ -117,6 +133,11 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
 
     if domain not in ALL_DOMAINS:
         raise ValueError(f"unknown domain {domain!r}; known: {', '.join(ALL_DOMAINS)}")
+    if gel not in GELS:
+        raise ValueError(f"unknown gel {gel!r}; known: {', '.join(GELS)}")
+    if gel == "neo-hookean" and domain not in FRICTIONLESS_DOMAINS + ("large_strain",):
+        raise DomainUnavailable("no neo-Hookean truth with friction (the neo-Hookean solve is frictionless); "
+                                "evaluate this domain with the linear gel")
     if domain.startswith("unseen_shapes"):
         if shared_dir is None or not shared_dir.is_dir():
             raise FileNotFoundError(f"shared indenter folder {shared_dir} not found: place ../shared beside the checkout")
@@ -130,6 +151,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
     sim = None if coulomb else get_simulator(material)
     cam = get_camera()
     large_strain = domain == "large_strain"
+    neo_hookean = large_strain or (gel == "neo-hookean" and domain in FRICTIONLESS_DOMAINS)
     depth_range = (0.6, 1.2) if large_strain else (0.2, 1.2)
     rng = np.random.default_rng([seed, ALL_DOMAINS.index(domain)])
     depth, disp, mask, ind = [], [], [], []
@@ -151,7 +173,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
                 depth.append(s.depth_mm)
                 disp.append(s.vertices_mm - s.rest_vertices_mm)
                 mask.append(s.contact_mask)
-            elif not large_strain:
+            elif not neo_hookean:
                 s = simulate_contact(indenters[k], pose, material, cam, sim)
                 depth.append(s.depth_mm)
                 disp.append(s.vertices_mm - s.rest_vertices_mm)
@@ -223,9 +245,11 @@ def evaluate_domain(data: DomainData, predictions: dict[str, np.ndarray], n_plan
 
 
 def run_evaluation(models: dict[str, Path] | str | Path, n: int = 256, seed: int = 2024,
-                   domains: tuple[str, ...] = DOMAINS, shared_dir: Path | None = None, log=print) -> dict:
+                   domains: tuple[str, ...] = DOMAINS, shared_dir: Path | None = None, log=print,
+                   gel: str = "linear") -> dict:
     """Every domain: simulate ``n`` contacts (``large_strain``: n / 8, the costly solve), evaluate
-    each model (label -> ONNX path; one path: labelled "model") and the physics lift."""
+    each model (label -> ONNX path; one path: labelled "model") and the physics lift; the
+    frictionless domains' truth from the ``gel`` law (module docstring)."""
     import time
 
     from tactile_deploy.pad.asset import load_pad
@@ -233,13 +257,13 @@ def run_evaluation(models: dict[str, Path] | str | Path, n: int = 256, seed: int
     if not isinstance(models, dict):
         models = {"model": Path(models)}
     n_plane = load_pad().n_plane
-    out = {"models": {k: str(v) for k, v in models.items()}, "seed": seed,
+    out = {"models": {k: str(v) for k, v in models.items()}, "seed": seed, "gel": gel,
            "metrics": "training/metrics.py: per-node Euclidean error, um; deepest node in % of its true depth",
            "domains": {}}
     for d in domains:
         t0 = time.perf_counter()
         try:
-            data = simulate_domain(d, n if d != "large_strain" else max(8, n // 8), seed, shared_dir)
+            data = simulate_domain(d, n if d != "large_strain" else max(8, n // 8), seed, shared_dir, gel)
         except DomainUnavailable as e:
             out["domains"][d] = {"unavailable": str(e)}
             log(f"{d}: not evaluated: {e}")
@@ -272,8 +296,9 @@ def markdown_table(report: dict, model: str | None = None) -> str:
                 lines.append(f"| {DOMAIN_LABELS[d]} | not measured: {res['unavailable']} | | | | |")
                 continue
             m, p = res["methods"][label], res["methods"][PHYSICS_LIFT]
+            gel = ", neo-Hookean gel" if report.get("gel") == "neo-hookean" and d in FRICTIONLESS_DOMAINS else ""
             lines.append(
-                f"| {DOMAIN_LABELS[d]} ({res['n_samples']}) | **{m['contact_patch_rmse_um']:.1f}** / {p['contact_patch_rmse_um']:.1f} "
+                f"| {DOMAIN_LABELS[d]}{gel} ({res['n_samples']}) | **{m['contact_patch_rmse_um']:.1f}** / {p['contact_patch_rmse_um']:.1f} "
                 f"| {m['deepest_node_error_pct']['mean']:+.1f} / {p['deepest_node_error_pct']['mean']:+.1f} "
                 f"| {m['all_node_rmse_um']:.1f} / {p['all_node_rmse_um']:.1f} | {m['lift_ratio']:.2f}x "
                 f"| {target_text(d, m)} |"
