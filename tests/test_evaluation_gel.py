@@ -34,6 +34,8 @@ def test_neo_hookean_truth_is_a_neo_hookean_equilibrium_at_the_same_poses():
     linear = simulate_domain("primitives", 2, seed=31)
     neo = simulate_domain("primitives", 2, seed=31, gel="neo-hookean")
     assert neo.indenter[0] == linear.indenter[0]
+    # the second pose (parallel lines) does not converge under the neo-Hookean gel: redrawn, and counted
+    assert (linear.redrawn, neo.redrawn) == (0, 1) and linear.indenter[1] == "parallel_lines" != neo.indenter[1]
     share = {gel: [unbalanced_share(u, m) for u, m in zip(d.displacement_mm, d.contact_mask)]
              for gel, d in (("linear", linear), ("neo-hookean", neo))}
     print(f"largest unbalanced force / contact force: {share}")

@@ -87,6 +87,8 @@ class DomainResult(StrictModel):
     n_samples: int = Field(ge=1, description="Contacts simulated for this domain.")
     methods: dict[str, MeshMetrics] = Field(description="Model label (and 'physics lift') -> its figures.")
     true_rms_displacement_um: float = Field(ge=0, description="RMS length of the true displacement over all nodes, um.")
+    redrawn_contacts: int = Field(0, ge=0, description=(
+        "Poses drawn and discarded: the indenter touched no sensing node, or the solve did not converge."))
     seconds: float = Field(ge=0, description="Wall time of the domain (simulation + every method), s.")
 
 
@@ -113,12 +115,14 @@ class DomainUnavailable(RuntimeError):
 
 @dataclass
 class DomainData:
-    """depth_mm (N, 128, 128); displacement_mm (N, n, 3); contact_mask (N, n_plane) bool; indenter (N,)."""
+    """depth_mm (N, 128, 128); displacement_mm (N, n, 3); contact_mask (N, n_plane) bool; indenter (N,);
+    redrawn: poses discarded (no sensing node touched, or no convergence) and drawn again."""
 
     depth_mm: np.ndarray
     displacement_mm: np.ndarray
     contact_mask: np.ndarray
     indenter: np.ndarray
+    redrawn: int = 0
 
 
 def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = None,
@@ -155,6 +159,7 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
     depth_range = (0.6, 1.2) if large_strain else (0.2, 1.2)
     rng = np.random.default_rng([seed, ALL_DOMAINS.index(domain)])
     depth, disp, mask, ind = [], [], [], []
+    redrawn = 0
     while len(depth) < n:
         k = int(rng.integers(len(indenters)))
         r = 12.0 * math.sqrt(rng.random())
@@ -186,12 +191,13 @@ def simulate_domain(domain: str, n: int, seed: int, shared_dir: Path | None = No
         except (ContactError, RuntimeError) as e:
             if isinstance(e, DomainUnavailable):
                 raise
+            redrawn += 1
             continue
         ind.append(Path(names[k]).stem)
     depth_arr = np.asarray(depth, np.float32)
     if domain.startswith("noisy"):
         depth_arr = add_sensor_noise(depth_arr, np.random.default_rng([seed, 99]))
-    return DomainData(depth_arr, np.asarray(disp, np.float32), np.asarray(mask, bool), np.asarray(ind))
+    return DomainData(depth_arr, np.asarray(disp, np.float32), np.asarray(mask, bool), np.asarray(ind), redrawn)
 
 
 def add_sensor_noise(depth_mm: np.ndarray, rng: np.random.Generator, white_um: float = 10.0,
@@ -272,8 +278,9 @@ def run_evaluation(models: dict[str, Path] | str | Path, n: int = 256, seed: int
         preds[PHYSICS_LIFT] = physics_lift(data.depth_mm)
         res = evaluate_domain(data, preds, n_plane)
         res["seconds"] = time.perf_counter() - t0
+        res["redrawn_contacts"] = data.redrawn
         out["domains"][d] = res
-        log(f"{d} [{res['n_samples']} contacts, {res['seconds']:.0f} s]: " + "; ".join(
+        log(f"{d} [{res['n_samples']} contacts, {data.redrawn} redrawn, {res['seconds']:.0f} s]: " + "; ".join(
             f"{name} patch {m['contact_patch_rmse_um']:.1f} um, deepest {m['deepest_node_error_pct']['mean']:+.2f} % "
             f"(|.| {m['deepest_node_error_pct']['mean_abs']:.2f}), all {m['all_node_rmse_um']:.1f} um"
             for name, m in res["methods"].items()))
