@@ -18,9 +18,9 @@ training: uniform in a disc of radius 12 mm, theta uniform):
 
 The gel of the frictionless domains (``primitives``, ``noisy``, ``unseen_shapes``) is linear
 elastic unless ``gel="neo-hookean"`` (``--gel neo-hookean``): then their truth is the
-neo-Hookean large-deformation solve of ``large_strain`` at the same poses and depths, the
-truth a graph trained on neo-Hookean contacts is measured against. The friction domains have no
-neo-Hookean truth yet (they are reported as not measured under that gel).
+neo-Hookean large-deformation solve of ``large_strain``, at poses and depths drawn as for the
+linear gel: the truth a graph trained on neo-Hookean contacts is measured against. The friction
+domains have no neo-Hookean truth yet (they are reported as not measured under that gel).
 
 Two more, for graphs of gels that grip, run only when named (``--domains``; :data:`ALL_DOMAINS`):
 ``unseen_shapes_coulomb`` (the shared STL indenters with Coulomb friction, mu as ``coulomb``) and
