@@ -11,8 +11,9 @@ Newton), written without the product's code. Here:
 * at 1.0 mm (a 2 mm sphere, 3 mm layer of radius 8 mm, E 0.3 MPa, nu 0.48: strains of tens of
   per cent) the resolved solver's force is within 2 % of it and its deformed surface within
   10 um (vertical position of the surface at a given distance from the sphere's axis, current
-  configuration, sensor frame): the requirement, not yet met at the automatic truth mesh
-  (x1.025, 12.1 um), so that test is a strict expected failure;
+  configuration, sensor frame): the requirement, not yet met in force at the automatic truth
+  mesh (x1.025), so that test is a strict expected failure; met with the bulk graded more
+  slowly (``bulk_growth=1.15``: x1.016, 8.6 um);
 * a rigid frictionless circular flat punch (radius 1 mm, sharp rim) on the same layer, nu 0.45:
   the independent FEM converges at rate one in the spacing at the rim (the square-root
   singularity of the pressure), reproduces Sneddon's half-space force on a thick layer, and the
@@ -78,6 +79,12 @@ def surface_profile_mm(sol, rho_mm: np.ndarray, azimuths_deg) -> np.ndarray:
 def ball_at_1mm():
     """The resolved solver's 2 mm sphere pressed 1.0 mm at the centre of the layer (neo-Hookean,
     frictionless, automatic truth mesh) and its intrusion field: (solution, field)."""
+    return press_ball_at_1mm()
+
+
+def press_ball_at_1mm(**solver_options):
+    """(solution, intrusion field) of the 2 mm sphere pressed 1.0 mm; ``solver_options`` go to
+    :class:`tactile_deploy.fem.truth.TruthSolver`."""
     from tactile_deploy.fem.material import Material
     from tactile_deploy.fem.truth import IntrusionField, TruthSolver
     from tactile_deploy.pad.geometry import PadGeometry
@@ -88,7 +95,7 @@ def ball_at_1mm():
         return np.where(r2 < BALL_RADIUS_MM**2, BALL_DEPTH_MM - cap, -np.inf)
 
     pad = PadGeometry(name="small", radius_mm=PAD_RADIUS_MM, thickness_mm=THICKNESS_MM)
-    solver = TruthSolver(pad, Material(E_mpa=E_MPA, nu=NU), model="neo-hookean")
+    solver = TruthSolver(pad, Material(E_mpa=E_MPA, nu=NU), model="neo-hookean", **solver_options)
     field = IntrusionField(intrusion)
     return solver.solve_field(field), field
 
@@ -133,13 +140,42 @@ def test_sphere_at_1mm_has_the_independent_fems_surface(ball_at_1mm, independent
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
     "at the automatic truth mesh (fine spacing 0.173 mm, bulk growing to 2 mm) the resolved "
     "solver's force is 2.5 % above the converged independent FEM; it meets 2 % on a finer mesh "
-    "(fine spacing 0.124 mm, bulk at most 0.5 mm: x1.017), not at the default one; docs/fem.md"))
+    "(fine spacing 0.124 mm, bulk at most 0.5 mm: x1.017) or with the bulk graded at 1.15 (x1.016, "
+    "tested below), not at the default one; docs/fem.md"))
 def test_sphere_at_1mm_has_the_independent_fems_force(ball_at_1mm, independent_ball_at_1mm):
     expected = independent_ball_at_1mm
     sol, _ = ball_at_1mm
     print(f"force {sol.force_n:.5f} N vs independent FEM {expected.force_n:.5f} N "
           f"(x{sol.force_n / expected.force_n:.4f})")
     assert sol.force_n == pytest.approx(expected.force_n, rel=0.02)
+
+
+@pytest.mark.slow
+def test_sphere_at_1mm_meets_the_independent_fem_with_the_bulk_graded_slower(independent_ball_at_1mm):
+    """The automatic mesh's excess force is the coarse bulk under the contact (0.77 mm tets at the
+    backplate with growth 1.2). Graded at 1.15 (0.62 mm there; 1.35 times the nodes), the force is
+    within 2 % of the independent FEM (measured x1.0162, 4,971 nodes; x1.0084 at 1.1, 7,869) and
+    the surface within 10 um (measured 8.61 um). Not the default: the neo-Hookean cone's solve
+    fails at 1.15, its elements folding below the apex (docs/fem.md)."""
+    expected = independent_ball_at_1mm
+    sol, field = press_ball_at_1mm(bulk_growth=1.15)
+    rho = np.arange(0.0, PAD_RADIUS_MM - 0.5, 0.005)
+    diff = np.abs(surface_profile_mm(sol, rho, np.arange(0.0, 360.0, 15.0))
+                  - np.interp(rho, expected.profile_r_mm, expected.profile_z_mm)[None])
+    print(f"bulk growth 1.15: {len(sol.mesh.vertices)} nodes, force {sol.force_n:.5f} N vs independent FEM "
+          f"{expected.force_n:.5f} N (x{sol.force_n / expected.force_n:.4f}); surface within {diff.max() * 1e3:.2f} um")
+    assert sol.force_n == pytest.approx(expected.force_n, rel=0.02)
+    assert diff.max() <= 10e-3
+
+
+def test_bulk_growth_is_checked():
+    from tactile_deploy.fem.material import Material
+    from tactile_deploy.fem.truth import TruthSolver
+    from tactile_deploy.pad.geometry import PadGeometry
+
+    pad = PadGeometry(name="small", radius_mm=PAD_RADIUS_MM, thickness_mm=THICKNESS_MM)
+    with pytest.raises(ValueError, match="bulk_growth must be in"):
+        TruthSolver(pad, Material(E_mpa=E_MPA, nu=NU), bulk_growth=0.15)   # the increase, not 1 + it
 
 
 # ------------------------------------------------------------------------- circular flat punch
