@@ -73,10 +73,18 @@ def test_predictor_headline_is_the_evaluation_and_the_model_card():
     evaluation report's, and the shipped model's card carries the same report's table."""
     import hashlib
 
-    (n, patch, lift_patch, deep, lift_deep, all_nodes, lift_all, unseen, lift_unseen) = readme(
-        r"on (\d+) fresh frictionless contacts: the shipped graph's contact patch is ([0-9.]+) um RMS against "
+    (n, patch, lift_patch, deep, lift_deep, all_nodes, lift_all, unseen, lift_unseen, neo, lift_neo) = readme(
+        r"on (\d+) fresh frictionless contacts of the linear-elastic gel it was trained on: the shipped graph's "
+        r"contact patch is ([0-9.]+) um RMS against "
         r"([0-9.]+) um for the physics lift, its deepest node ([-+0-9.]+) % against ([-+0-9.]+) % \(all nodes: "
-        r"([0-9.]+) against ([0-9.]+) um\); on the shared STL shapes it never saw ([0-9.]+) against ([0-9.]+) um")
+        r"([0-9.]+) against ([0-9.]+) um\); on the shared STL shapes it never saw ([0-9.]+) against ([0-9.]+) um "
+        r"\(docs/results/evaluation.json\); on the same kind of contacts of the neo-Hookean gel \(large "
+        r"deformation\) ([0-9.]+) um against ([0-9.]+) um \(docs/results/evaluation_neo_hookean_truth.json\)")
+    neo_report = json.loads((ROOT / "docs" / "results" / "evaluation_neo_hookean_truth.json").read_text())
+    assert neo_report["gel"] == "neo-hookean" and neo_report["models"]["shipped"] == "exported/gelslim_mesh.onnx"
+    neo_prim = neo_report["domains"]["primitives"]["methods"]
+    assert rounded(neo_prim["shipped"]["contact_patch_rmse_um"], neo) == neo
+    assert rounded(neo_prim["physics lift"]["contact_patch_rmse_um"], lift_neo) == lift_neo
     evaluation = json.loads((ROOT / "docs" / "results" / "evaluation.json").read_text())
     card = json.loads((ROOT / "exported" / "gelslim_mesh.json").read_text())
     assert evaluation["models"]["shipped"] == "exported/gelslim_mesh.onnx"
