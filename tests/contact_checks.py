@@ -1,6 +1,7 @@
-"""Checks of a resolved contact solution against its indenter's surface, shared by the truth
-tests: no penetration anywhere on the continuous surface, no tensile traction, gap and force
-complementary at every loaded node and feature point."""
+"""Checks of contact solutions shared by the tests: a resolved solution against its indenter's
+surface (no penetration anywhere on the continuous surface, no tensile traction, gap and force
+complementary at every loaded node and feature point), and how far a pad-mesh solution is from
+neo-Hookean equilibrium."""
 
 from __future__ import annotations
 
@@ -37,3 +38,20 @@ def check_resolved_contact(sol, field, geometric: bool, label: str,
     loaded = sol.info["point_force_n"] > 1e-6 * sol.force_n
     assert np.all(np.abs(sol.info["point_gap_mm"][loaded]) < 1e-3)
     return pen, tip_depth
+
+
+def neo_hookean_imbalance(displacement_mm: np.ndarray, contact_mask: np.ndarray, nu: float = 0.48) -> float:
+    """Largest neo-Hookean internal force on an unloaded free dof of the shipped pad (every free
+    dof but the contact nodes' z) over the contact's total force: ~0 for a frictionless
+    neo-Hookean equilibrium. ``displacement_mm`` (5380, 3), ``contact_mask`` (n_plane,) bool."""
+    from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, build_dof_map
+    from tactile_deploy.fem.hyperelastic import NeoHookeanGel
+    from tactile_deploy.pad.asset import load_pad
+
+    pad = load_pad()
+    gel = NeoHookeanGel(pad.vertices, pad.tets, 1.0, nu)
+    dofs = build_dof_map(pad, SENSOR_SUPPORTS)
+    unloaded = np.ones(dofs.T.shape[1], bool)
+    unloaded[dofs.z_col[pad.sensing_nodes[contact_mask]]] = False
+    f = dofs.T.T @ gel.forces(displacement_mm.astype(np.float64)).ravel()
+    return float(np.abs(f[unloaded]).max() / abs(f[~unloaded].sum()))

@@ -12,22 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from contact_checks import neo_hookean_imbalance
+
 from tactile_deploy.training.evaluation import DomainUnavailable, markdown_table, simulate_domain
-
-
-def unbalanced_share(displacement_mm: np.ndarray, contact_mask: np.ndarray) -> float:
-    """Largest neo-Hookean internal force on an unloaded free dof over the contact's total force."""
-    from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, build_dof_map
-    from tactile_deploy.fem.hyperelastic import NeoHookeanGel
-    from tactile_deploy.pad.asset import load_pad
-
-    pad = load_pad()
-    gel = NeoHookeanGel(pad.vertices, pad.tets, 1.0, 0.48)
-    dofs = build_dof_map(pad, SENSOR_SUPPORTS)
-    unloaded = np.ones(dofs.T.shape[1], bool)
-    unloaded[dofs.z_col[pad.sensing_nodes[contact_mask]]] = False
-    f = dofs.T.T @ gel.forces(displacement_mm.astype(np.float64)).ravel()
-    return float(np.abs(f[unloaded]).max() / abs(f[~unloaded].sum()))
 
 
 def test_neo_hookean_truth_is_a_neo_hookean_equilibrium_at_the_same_poses():
@@ -36,7 +23,7 @@ def test_neo_hookean_truth_is_a_neo_hookean_equilibrium_at_the_same_poses():
     assert neo.indenter[0] == linear.indenter[0]
     # the second pose (parallel lines) does not converge under the neo-Hookean gel: redrawn, and counted
     assert (linear.redrawn, neo.redrawn) == (0, 1) and linear.indenter[1] == "parallel_lines" != neo.indenter[1]
-    share = {gel: [unbalanced_share(u, m) for u, m in zip(d.displacement_mm, d.contact_mask)]
+    share = {gel: [neo_hookean_imbalance(u, m) for u, m in zip(d.displacement_mm, d.contact_mask)]
              for gel, d in (("linear", linear), ("neo-hookean", neo))}
     print(f"largest unbalanced force / contact force: {share}")
     assert max(share["neo-hookean"]) < 1e-5     # float32 storage of a 1e-6 mm solve
