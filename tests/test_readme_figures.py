@@ -200,3 +200,21 @@ def test_virtual_sensor_frame_time_is_the_benchmark():
     (ms,) = readme(r"take about (\d+) ms at 640 x 480 on one CPU thread")
     renderer = float(table_row(section("optics"), "renderer, whole frame changed")[0])
     assert rounded(renderer, ms) == ms
+
+
+def test_neo_hookean_graph_figures_are_its_evaluation():
+    """The README's figures for the graph trained on the neo-Hookean gel (not shipped) are its
+    committed evaluation reports' (neo-Hookean truth; the linear truth's primitives)."""
+    prim, unseen, noisy, strain, linear = readme(
+        r"alone reads frictionless primitives to ([0-9.]+) um, unseen shapes ([0-9.]+), noisy maps "
+        r"([0-9.]+) and large\s+strain ([0-9.]+) um, 2.9-3.4x better than the physics lift, but not to the "
+        r"30 / 50 um targets, and the\s+linear gel's contacts to ([0-9.]+) um")
+    results = ROOT / "docs" / "results"
+    neo = json.loads((results / "evaluation_neo_hookean_truth_x2.json").read_text())
+    lin = json.loads((results / "evaluation_neo_hookean_finetune_x2.json").read_text())
+    assert neo["gel"] == "neo-hookean" and lin["gel"] == "linear"
+    for dom, figure in (("primitives", prim), ("unseen_shapes", unseen), ("noisy", noisy), ("large_strain", strain)):
+        methods = neo["domains"][dom]["methods"]
+        assert rounded(methods["nh_x2"]["contact_patch_rmse_um"], figure) == figure
+        assert methods["physics lift"]["contact_patch_rmse_um"] / methods["nh_x2"]["contact_patch_rmse_um"] >= 2.85
+    assert rounded(lin["domains"]["primitives"]["methods"]["nh_x2"]["contact_patch_rmse_um"], linear) == linear
