@@ -115,7 +115,8 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
         results.append({"family": name, "reader": label, "ball": ball, "edge": presses.near_edge,
                         "mesh": np.array(mesh_err), "shape": shape, "shape_names": sp.names,
                         "shape48": shape48, "shape48_names": sp48.names,
-                        "cal": cal.metrics, "t_prepare": t_prepare, "t_cal": t_cal})
+                        "cal": cal.metrics, "t_prepare": t_prepare, "t_cal": t_cal,
+                        "view_edge_extension_mm": plugin.manifest.view_edge_extension_mm})
     return results
 
 
@@ -136,7 +137,12 @@ def markdown(results: list[dict]) -> str:
               "family depth grid), their physics-lift meshes against the FEM (sensing nodes "
               "within 1.5 contact radii, 3-D RMSE), 16 presses of the 16 shared indenter meshes "
               "(contact-region RMSE; seed 99, one per shape) and a second sample of 48 (three per shape, "
-              "seed 123). um."), "",
+              "seed 123). um. The depth grid follows the sensing area, a little wider than the "
+              "camera's view: across that strip the plugins carry the depth at the view's edge "
+              "(`view_edge_extension_mm`, set by the calibration to the strip's width: "
+              + ", ".join(sorted({f"{r['family']} {r['view_edge_extension_mm']:.2f} mm" for r in results}))
+              + "; with depth 0 there, a contact reaching past the view left a cliff at its edge)."),
+             "",
              "| family | depth from | balls inside: RMSE near mean (worst) | near the edges | mesh vs "
              "FEM mean (worst) | unseen shapes: contact-region mean (worst) | the same, 48 presses: mean "
              "(worst) | calibration held-out shape mean / worst | targets |",

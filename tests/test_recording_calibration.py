@@ -227,6 +227,20 @@ def test_greyscale_frames(presses, tmp_path):
     assert "greyscale" in text and "RGB" in text
 
 
+def test_view_edge_extension_is_the_unseen_strip_at_most_a_millimetre():
+    from tactile_deploy.calibration.recording.checks import VIEW_EDGE_EXTENSION_MAX_MM, view_edge_extension
+    from tactile_deploy.imaging.camera_mapping import OutputGrid
+
+    depth_grid = OutputGrid(x_min_mm=-9.3, x_max_mm=9.3, y_min_mm=-7.2, y_max_mm=7.2, nx=124, ny=96)
+    view = OutputGrid(x_min_mm=-9.0, x_max_mm=9.1, y_min_mm=-6.6, y_max_mm=6.7, nx=66, ny=48)
+    assert view_edge_extension(view, depth_grid) == (pytest.approx(0.6), [])
+    assert view_edge_extension(depth_grid, depth_grid) == (0.0, [])
+    small = OutputGrid(x_min_mm=-6.0, x_max_mm=6.0, y_min_mm=-6.0, y_max_mm=6.0, nx=44, ny=44)
+    ext, notes = view_edge_extension(small, depth_grid)
+    assert ext == VIEW_EDGE_EXTENSION_MAX_MM == 1.0
+    assert "up to 3.30 mm of the depth grid unseen" in notes[0] and "1 mm past it" in notes[0]
+
+
 def test_scale_that_does_not_fit(presses, tmp_path):
     text = _clean_error(_calibrate(presses, tmp_path, "--mm-per-px", "0.2",
                                    annotations=presses / "annotate.csv"))

@@ -186,32 +186,44 @@ def test_unloaded_sensor_gives_flat_depth(synthetic):
     assert np.abs(pipe.frame_to_depth(synthetic.reference_frame)).max() < 1e-6
 
 
+@pytest.mark.parametrize("extend_mm", [0.0, 0.9])
 @pytest.mark.parametrize("src", [
     OutputGrid(x_min_mm=-6.1, x_max_mm=6.3, y_min_mm=-8.0, y_max_mm=8.2, nx=240, ny=320),
     OutputGrid(x_min_mm=-20, x_max_mm=20, y_min_mm=-20, y_max_mm=20, nx=50, ny=50),
     OutputGrid(x_min_mm=3.0, x_max_mm=30.0, y_min_mm=-30.0, y_max_mm=-1.0, nx=77, ny=91),
 ])
-def test_grid_resampler_against_supersampling(src):
+def test_grid_resampler_against_supersampling(src, extend_mm):
     """Area averaging checked against brute-force supersampling of the piecewise-constant
-    source (each destination cell averaged over 32 x 32 sample points)."""
+    source (each destination cell averaged over 32 x 32 sample points); with ``extend_mm`` the
+    source's edge cells reach that far past its edges (a point within it along x and along y
+    takes the nearest cell's value), 0 beyond."""
     rng = np.random.default_rng(2)
     depth = rng.uniform(0, 1, (src.ny, src.nx)).astype(np.float32)
     dst = OutputGrid(nx=32, ny=32)
-    out = GridResampler(src, dst)(depth)
+    out = GridResampler(src, dst, extend_mm)(depth)
     k = 32
     fx = dst.x_min_mm + (np.arange(dst.nx * k) + 0.5) * dst.pitch_x_mm / k
     fy = dst.y_max_mm - (np.arange(dst.ny * k) + 0.5) * dst.pitch_y_mm / k
     col = np.floor((fx - src.x_min_mm) / src.pitch_x_mm).astype(int)
     row = np.floor((src.y_max_mm - fy) / src.pitch_y_mm).astype(int)
-    inside = (col[None, :] >= 0) & (col[None, :] < src.nx) & (row[:, None] >= 0) & (row[:, None] < src.ny)
-    vals = np.where(inside, depth[np.clip(row, 0, src.ny - 1)[:, None],
-                                  np.clip(col, 0, src.nx - 1)[None, :]], 0.0)
+    in_x = (fx >= src.x_min_mm - extend_mm) & (fx < src.x_max_mm + extend_mm)
+    in_y = (fy > src.y_min_mm - extend_mm) & (fy <= src.y_max_mm + extend_mm)
+    vals = np.where(in_y[:, None] & in_x[None, :],
+                    depth[np.clip(row, 0, src.ny - 1)[:, None], np.clip(col, 0, src.nx - 1)[None, :]],
+                    0.0)
     brute = vals.reshape(dst.ny, k, dst.nx, k).mean(axis=(1, 3))
     # sampling error of the brute force: a source edge inside a destination cell moves by
     # at most one sample column / row
     assert np.abs(out - brute).max() < 2.5 / k
     assert np.abs(out - brute).mean() < 0.2 / k
+    if extend_mm and src.x_min_mm > dst.x_min_mm:   # cells the plain resampling leaves (partly) at 0
+        assert np.abs(out - GridResampler(src, dst)(depth)).max() > 0.3
     assert GridResampler(dst, dst).identity
+
+
+def test_grid_resampler_refuses_a_negative_extension():
+    with pytest.raises(ValueError, match="extend_mm must be >= 0 mm, got -0.1"):
+        GridResampler(OutputGrid(), OutputGrid(nx=32, ny=32), -0.1)
 
 
 def test_frame_check_messages(synthetic):

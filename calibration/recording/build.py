@@ -38,7 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile_deploy.calibration.recording.checks import check_annotation_axes, check_ball_radius, view_mapping
+from tactile_deploy.calibration.recording.checks import (
+    check_annotation_axes,
+    check_ball_radius,
+    view_edge_extension,
+    view_mapping,
+)
 from tactile_deploy.calibration.recording.errors import PlausibilityError
 from tactile_deploy.calibration.recording.load import Recording, load_recording
 from tactile_deploy.calibration.recording.readout import (
@@ -279,9 +284,11 @@ def _write_plugin(sensor, family, target: Path, overwrite: bool, rec: Recording,
         # (none: zero - one frame has no fixed-pattern noise of its own to show)
         if readout is not None:
             shutil.copyfile(readout.path, staging / "readout.onnx")
+        extension_mm, extension_notes = view_edge_extension(camera.grid, family.depth_grid)
+        notes += extension_notes
         plain = ImagingPipeline(camera, fit.model, rec.reference, None, "keep",
                                 depth_grid=family.depth_grid,
-                                readout=readout)
+                                readout=readout, view_edge_extension_mm=extension_mm)
         if len(rec.no_contact):
             noise = np.mean([plain.frame_to_depth(f) for f in rec.no_contact], axis=0)
         else:
@@ -313,6 +320,7 @@ def _write_plugin(sensor, family, target: Path, overwrite: bool, rec: Recording,
                        "mesh_hash": mesh.content_hash},
             "camera": json.loads(camera.model_dump_json()),
             "depth_grid": family.depth_grid.model_dump(),
+            "view_edge_extension_mm": round(extension_mm, 6),
             "material": {"E_mpa": PRIOR_E_MPA, "nu": PRIOR_NU,
                          "source": "prior (no forces were recorded, so E is not calibrated: "
                                    "forces scale with it; nu fixed at 0.48)"},

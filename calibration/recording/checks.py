@@ -111,6 +111,27 @@ def view_mapping(width_px: int, height_px: int, mm_per_px: float, family,
     return camera_mapping_for_view(width_px, height_px, mm_per_px, k), k, notes
 
 
+#: The farthest (mm) a contact seen at the edge of the view is carried past it onto the depth grid.
+VIEW_EDGE_EXTENSION_MAX_MM = 1.0
+
+
+def view_edge_extension(imaging_grid, depth_grid) -> tuple[float, list[str]]:
+    """``(extension mm, notes)``: the widest strip (mm) of the pad family's ``depth_grid`` that the
+    camera's ``imaging_grid`` leaves unseen along any side, at most
+    :data:`VIEW_EDGE_EXTENSION_MAX_MM`. The runtime carries the depth at the view's edge across
+    that strip (the plugin's ``view_edge_extension_mm``): a contact seen at the edge goes on past
+    it, where depth 0 would draw a cliff at the edge of the view."""
+    g, d = imaging_grid, depth_grid
+    strip = max(0.0, g.x_min_mm - d.x_min_mm, d.x_max_mm - g.x_max_mm,
+                g.y_min_mm - d.y_min_mm, d.y_max_mm - g.y_max_mm)
+    if strip <= VIEW_EDGE_EXTENSION_MAX_MM:
+        return strip, []
+    return VIEW_EDGE_EXTENSION_MAX_MM, [
+        f"the view leaves up to {strip:.2f} mm of the depth grid unseen along a side; the depth at "
+        f"its edge is carried {VIEW_EDGE_EXTENSION_MAX_MM:g} mm past it, farther out the depth "
+        "is 0"]
+
+
 # ------------------------------------------------------------------------------- annotations
 def check_annotation_axes(circles: np.ndarray, shape_hw: tuple[int, int], names: list[str],
                           detected: dict[int, np.ndarray], annotations: str) -> None:

@@ -21,7 +21,8 @@ imaging.camera_mapping.OutputGrid`): for the GelSlim plugins it is the model gri
 sensor with a smaller field of view or finer pixels (e.g. a GelSight at 0.05 mm/px) it is that
 sensor's own grid, so the shading model keeps the camera's resolution, and ``to_model_grid``
 averages the depth onto the model grid (cells outside the sensor's field get depth 0, the flat far
-field). Both grids are sensor-frame grids with row 0 at the largest y and columns along +x.
+field, except within the plugin's ``view_edge_extension_mm`` of the field's edge, where the edge's
+depth continues: a contact seen at the edge of the view goes on past it). Both grids are sensor-frame grids with row 0 at the largest y and columns along +x.
 
 The shading stages reproduce :class:`tactile_deploy.imaging.shading.DepthFromShading` exactly
 (same operations in the same order; tested), split so each stage can be timed and called alone.
@@ -263,17 +264,25 @@ class GridResampler:
     """Area-weighted resampling between two axis-aligned sensor-frame grids.
 
     ``dst = Ay @ src @ Ax.T`` where ``Ax[j, k]`` is the fraction of destination column j's
-    width covered by source column k (likewise rows); destination cells outside the source grid
-    receive 0 for the part they do not overlap (the flat far field).
+    width covered by source column k (likewise rows). The source is piecewise constant over its
+    cells; with ``extend_mm`` > 0 its outermost cells reach ``extend_mm`` further out (each side,
+    corners included: the view's edge value continues), and destination cells, or the parts of
+    them, beyond that receive 0 (the flat far field).
     """
 
-    def __init__(self, src: OutputGrid, dst: OutputGrid):
-        self.src, self.dst = src, dst
+    def __init__(self, src: OutputGrid, dst: OutputGrid, extend_mm: float = 0.0):
+        if not extend_mm >= 0.0:
+            raise ValueError(f"extend_mm must be >= 0 mm, got {extend_mm!r}")
+        self.src, self.dst, self.extend_mm = src, dst, float(extend_mm)
         self.identity = src == dst
         xs = src.x_min_mm + np.arange(src.nx + 1) * src.pitch_x_mm
         xd = dst.x_min_mm + np.arange(dst.nx + 1) * dst.pitch_x_mm
         ys = src.y_max_mm - np.arange(src.ny + 1) * src.pitch_y_mm
         yd = dst.y_max_mm - np.arange(dst.ny + 1) * dst.pitch_y_mm
+        xs[0] -= extend_mm
+        xs[-1] += extend_mm
+        ys[0] += extend_mm
+        ys[-1] -= extend_mm
         # sparse products: no BLAS thread pool (a multi-threaded GEMM on a busy machine is
         # slower than the work itself)
         self.ax = scipy.sparse.csr_matrix(self._overlap(xd, xs, dst.pitch_x_mm).astype(np.float32))
@@ -326,12 +335,15 @@ class ImagingPipeline:
         features, ``shading``: the network) instead of the shading table and the integration.
     readout_gain : the unit's depth gain of the read-out (the plugin's ``readout_depth_gain``),
         multiplying its depth.
+    view_edge_extension_mm : how far (mm) beyond the imaging grid's edge its edge depth
+        continues on the depth grid (the plugin's ``view_edge_extension_mm``); beyond it, 0.
     """
 
     def __init__(self, camera: CameraMapping, shading: ShadingModel, reference_raw: np.ndarray,
                  noise_mm: np.ndarray | None = None, noise_handling: str = "keep",
                  depth_grid: OutputGrid | None = None, hooks=None,
-                 supersample: int | None = None, readout=None, readout_gain: float = 1.0):
+                 supersample: int | None = None, readout=None, readout_gain: float = 1.0,
+                 view_edge_extension_mm: float = 0.0):
         self.camera = camera
         self.frame_shape = (camera.image_height_px, camera.image_width_px)
         self.rectifier = Rectifier(camera, supersample)
@@ -348,7 +360,7 @@ class ImagingPipeline:
         h = shading.header
         self.solver = depth_solver(h)
         self.depth_grid = depth_grid or OutputGrid()
-        self.resampler = GridResampler(camera.grid, self.depth_grid)
+        self.resampler = GridResampler(camera.grid, self.depth_grid, view_edge_extension_mm)
         if noise_handling not in ("subtract", "keep"):
             raise ValueError(f"noise_handling must be 'subtract' or 'keep', got {noise_handling!r}")
         if noise_mm is not None:
@@ -366,7 +378,8 @@ class ImagingPipeline:
         m = plugin.manifest
         return cls(m.camera, plugin.shading_model, plugin.reference_frame,
                    plugin.noise_reference, m.noise_reference.handling, m.depth_grid,
-                   plugin.hooks, readout=plugin.readout, readout_gain=m.readout_depth_gain)
+                   plugin.hooks, readout=plugin.readout, readout_gain=m.readout_depth_gain,
+                   view_edge_extension_mm=m.view_edge_extension_mm)
 
     def rectify(self, frame) -> np.ndarray:
         """Raw frame -> (ny, nx, 3) uint8 on the imaging grid (rectify and resample stages)."""

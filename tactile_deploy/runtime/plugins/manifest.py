@@ -102,6 +102,13 @@ class PluginManifest(StrictModel):
                                    description="Grid of the depth maps: the pad family's depth "
                                    "grid (the GelSlim model's: +-17.5 mm, 128 x 128), row 0 at "
                                    "the largest y.")
+    view_edge_extension_mm: float = Field(
+        0.0, ge=0.0, le=2.0, description="Depth-grid cells outside the camera's imaging grid and "
+        "within this distance (mm) of its edge take the depth at the edge (a contact seen at the "
+        "edge of the view goes on past it); farther out, depth 0 (the flat far field). 0 for "
+        "plugins whose model was trained with depth 0 outside the view (GelSlim's); the "
+        "calibration from recorded presses sets the strip between the view and the pad family's "
+        "depth grid.")
     shading: FileRef = Field(description="Shading model (.npz with JSON header) fitted on frames "
                              "rectified onto the camera's imaging grid.")
     readout: FileRef | None = Field(
