@@ -139,8 +139,10 @@ def markdown(results: list[dict]) -> str:
               "(contact-region RMSE; seed 99, one per shape) and a second sample of 48 (three per shape, "
               "seed 123). um. The depth grid follows the sensing area, a little wider than the "
               "camera's view: across that strip the plugins carry the depth at the view's edge "
-              "(`view_edge_extension_mm`, set by the calibration to the strip's width: "
-              + ", ".join(sorted({f"{r['family']} {r['view_edge_extension_mm']:.2f} mm" for r in results}))
+              "(`view_edge_extension_mm`, set by the calibration to the strip's widest side, "
+              "which depends on the imaging grid the depth is read on: "
+              + "; ".join(f"{r['family']}, {r['reader'].split(' `')[0]}: {r['view_edge_extension_mm']:.2f} mm"
+                          for r in results)
               + "; with depth 0 there, a contact reaching past the view left a cliff at its edge)."),
              "",
              "| family | depth from | balls inside: RMSE near mean (worst) | near the edges | mesh vs "
