@@ -280,12 +280,27 @@ def main(argv=None) -> int:
                 t0 = time.perf_counter_ns()
                 call(n, batch8)
                 t8[n].append((time.perf_counter_ns() - t0) / 1e6 / 8)
+    # the shipped graph alone: back-to-back calls, as `run` calls it frame after frame, with no
+    # other design's weights (the physics lift's graph holds 66 MiB) pushed through the caches between
+    alone = {}
+    for n in names:
+        if n.endswith("(shipped)"):
+            for x in inputs[:5]:
+                call(n, x)
+            times = []
+            for r in range(rounds):
+                t0 = time.perf_counter_ns()
+                call(n, inputs[r % len(inputs)])
+                times.append((time.perf_counter_ns() - t0) / 1e6)
+            alone[n] = (float(np.percentile(times, 50)), float(np.percentile(times, 95)))
     base_name = "latent (previous shipped)" if "latent (previous shipped)" in t1 else names[0]
     base = float(np.percentile(t1[base_name], 50))
     for n in names:
         rows.setdefault(n, {"kind": "torch", "precision": "fp32", "file_mb": None, "domains": {}})
         rows[n].update(p50_ms=float(np.percentile(t1[n], 50)), p95_ms=float(np.percentile(t1[n], 95)),
                        per_mesh_batch8_ms=float(np.percentile(t8[n], 50)), vs_base=float(np.percentile(t1[n], 50)) / base)
+        if n in alone:
+            rows[n]["p50_alone_ms"], rows[n]["p95_alone_ms"] = alone[n]
 
     text = table(rows, base_name, rounds, {d: len(v[0]) for d, v in data.items()}, args.small)
     print(text)
@@ -336,8 +351,17 @@ def table(rows: dict, base_name: str, rounds: int, counts: dict, small: bool) ->
     shipped = [r for name, r in rows.items() if name.endswith("(shipped)") and r.get("p50_ms") is not None]
     if shipped:
         p50 = shipped[0]["p50_ms"]
-        lines.append(f"Shipped graph p50 at batch 1: {p50:.3f} ms, target <= {TARGET_P50_MS} ms: "
+        lines.append(f"Shipped graph p50 at batch 1, interleaved with the other designs: {p50:.3f} ms, "
+                     f"target <= {TARGET_P50_MS} ms: "
                      + ("met" if p50 <= TARGET_P50_MS else "**not met**") + " in this run.")
+        if shipped[0].get("p50_alone_ms") is not None:
+            a50, a95 = shipped[0]["p50_alone_ms"], shipped[0]["p95_alone_ms"]
+            lines.append(f"The same graph alone ({rounds} back-to-back calls at batch 1, one thread, as "
+                         f"`run` calls it frame after frame, no other graph between): p50 {a50:.3f} ms, "
+                         f"p95 {a95:.3f} ms: " + ("met" if a50 <= TARGET_P50_MS else "**not met**")
+                         + ". Interleaved, every other design's weights (the physics lift's graph "
+                         "holds 66 MiB) pass through the caches between two calls; in the `run` loop "
+                         "the imaging stages do (BENCHMARKS.md `runtime`, its `model` stage).")
     return "\n".join(lines)
 
 
