@@ -22,7 +22,8 @@ sensor with a smaller field of view or finer pixels (e.g. a GelSight at 0.05 mm/
 sensor's own grid, so the shading model keeps the camera's resolution, and ``to_model_grid``
 averages the depth onto the model grid (cells outside the sensor's field get depth 0, the flat far
 field, except within the plugin's ``view_edge_extension_mm`` of the field's edge, where the edge's
-depth continues: a contact seen at the edge of the view goes on past it). Both grids are sensor-frame grids with row 0 at the largest y and columns along +x.
+depth continues: a contact seen at the edge of the view goes on past it). Both grids are
+sensor-frame grids with row 0 at the largest y and columns along +x.
 
 The shading stages reproduce :class:`tactile_deploy.imaging.shading.DepthFromShading` exactly
 (same operations in the same order; tested), split so each stage can be timed and called alone.
