@@ -181,12 +181,12 @@ def virtual_shape_presses(sensor, grid, indenters, n: int = 16, seed: int = 99,
     return ShapePresses(np.stack(frames), np.stack(truths), np.array(used))
 
 
-def view_mask(grid) -> np.ndarray:
-    """(128, 128) bool: the model-grid cells whose centres the camera's imaging ``grid`` covers
-    (where a read-out can see the surface at all)."""
+def view_mask(grid, depth_grid=None) -> np.ndarray:
+    """(ny, nx) bool: the cells of ``depth_grid`` (default: the model grid, 128 x 128) whose
+    centres the camera's imaging ``grid`` covers (where a read-out can see the surface at all)."""
     from tactile_deploy.imaging.camera_mapping import OutputGrid
 
-    g = OutputGrid()
+    g = depth_grid or OutputGrid()
     x = g.x_min_mm + (np.arange(g.nx) + 0.5) * g.pitch_x_mm
     y = g.y_max_mm - (np.arange(g.ny) + 0.5) * g.pitch_y_mm
     return ((x[None, :] > grid.x_min_mm) & (x[None, :] < grid.x_max_mm)
