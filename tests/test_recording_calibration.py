@@ -108,6 +108,7 @@ def test_one_command_makes_a_plugin_without_a_learned_model(real_run):
     assert "background.png (picked" in text            # the no-contact frame of the recording
     assert "rows run along +x" in text                  # portrait frames on a landscape area
     assert "held-out shape error mean" in text
+    assert "depth at its edge is carried 1 mm past it" in text   # the Mini's grid: 1.13 mm unseen
     report = validate_plugin(real_run["plugin"])
     assert report.ok, report.problems
     plugin = SensorPlugin.load(real_run["plugin"])
@@ -233,7 +234,9 @@ def test_view_edge_extension_is_the_unseen_strip_at_most_a_millimetre():
 
     depth_grid = OutputGrid(x_min_mm=-9.3, x_max_mm=9.3, y_min_mm=-7.2, y_max_mm=7.2, nx=124, ny=96)
     view = OutputGrid(x_min_mm=-9.0, x_max_mm=9.1, y_min_mm=-6.6, y_max_mm=6.7, nx=66, ny=48)
-    assert view_edge_extension(view, depth_grid) == (pytest.approx(0.6), [])
+    ext, notes = view_edge_extension(view, depth_grid)
+    assert ext == pytest.approx(0.6) and notes == ["the view leaves up to 0.60 mm of the depth grid unseen "
+                                                   "along a side; the depth at its edge is carried across it"]
     assert view_edge_extension(depth_grid, depth_grid) == (0.0, [])
     small = OutputGrid(x_min_mm=-6.0, x_max_mm=6.0, y_min_mm=-6.0, y_max_mm=6.0, nx=44, ny=44)
     ext, notes = view_edge_extension(small, depth_grid)

@@ -125,7 +125,8 @@ def view_edge_extension(imaging_grid, depth_grid) -> tuple[float, list[str]]:
     strip = max(0.0, g.x_min_mm - d.x_min_mm, d.x_max_mm - g.x_max_mm,
                 g.y_min_mm - d.y_min_mm, d.y_max_mm - g.y_max_mm)
     if strip <= VIEW_EDGE_EXTENSION_MAX_MM:
-        return strip, []
+        return strip, ([f"the view leaves up to {strip:.2f} mm of the depth grid unseen along a "
+                        "side; the depth at its edge is carried across it"] if strip > 0 else [])
     return VIEW_EDGE_EXTENSION_MAX_MM, [
         f"the view leaves up to {strip:.2f} mm of the depth grid unseen along a side; the depth at "
         f"its edge is carried {VIEW_EDGE_EXTENSION_MAX_MM:g} mm past it, farther out the depth "
