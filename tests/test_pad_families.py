@@ -141,3 +141,33 @@ def test_depth_lift_puts_each_node_on_the_depth_surface_and_fixed_sides_hold():
     np.testing.assert_allclose(-top[:, 2], sample_depth_grid(depth, grid, top[:, :2]), atol=3e-3)
     assert np.abs(v[mesh.side_nodes] - mesh.vertices[mesh.side_nodes]).max() == 0.0
     assert f.sum() > 0
+
+
+def test_depth_lift_lateral_operator_gives_the_solves_numbers_and_is_cached(tmp_path, monkeypatch):
+    """The fixed point's lateral steps from the cached dense operator equal those of a sparse
+    solve of the whole mesh per step; a second lift of the same pad and material reads the
+    operator back from the cache folder, another nu does not."""
+    from tactile_deploy.fem.depth_lift import DepthLift
+
+    monkeypatch.setenv("TACTILE_DEPLOY_CACHE_DIR", str(tmp_path))
+    geo = PadGeometry(name="b", shape="box", width_mm=8.0, length_mm=8.0, thickness_mm=3.0,
+                      edge_mm=1.0, core_edge_mm=0.5, core_half_width_mm=3.0,
+                      core_half_length_mm=3.0, n_layers=3)
+    mesh = build_pad_mesh(geo)
+    grid = depth_grid_over(SensingArea(x_min_mm=-3, x_max_mm=3, y_min_mm=-3, y_max_mm=3), 0.1)
+    x = grid.x_min_mm + (np.arange(grid.nx) + 0.5) * grid.pitch_x_mm
+    y = grid.y_max_mm - (np.arange(grid.ny) + 0.5) * grid.pitch_y_mm
+    depth = np.clip(0.6 - ((x[None, :] - 0.4) ** 2 + y[:, None] ** 2) / (2 * 1.5), 0, None)
+    lift = DepthLift(mesh, 0.48, 0.3)
+    v_op, f_op = lift.from_depth(depth, grid)
+    v_solve, f_solve = lift.from_depth(depth, grid, lateral="solve")
+    assert np.abs(v_op - mesh.vertices).max() > 0.3
+    np.testing.assert_allclose(v_op, v_solve, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(f_op, f_solve, rtol=0, atol=1e-10 * np.abs(f_solve).max())
+    assert lift.lateral_cache_path.is_file()
+    again = DepthLift(mesh, 0.48, 0.3)
+    assert again.lateral_cache_path == lift.lateral_cache_path
+    np.testing.assert_array_equal(np.load(again.lateral_cache_path), lift.lateral_operator())
+    assert DepthLift(mesh, 0.45, 0.3).lateral_cache_path != lift.lateral_cache_path
+    with pytest.raises(ValueError, match="lateral must be 'operator' or 'solve'"):
+        lift.from_depth(depth, grid, lateral="dense")

@@ -13,7 +13,12 @@ surface-to-volume operator of :mod:`tactile_deploy.fem.surface_to_volume` needs
 ``3 n x n_sensing`` floats). The two give the same displacements (tested).
 
 The image shows the surface where it has moved to, so each node's depth is read where the node
-is after the solve (a fixed point, found by relaxed iteration: :meth:`DepthLift.from_depth`).
+is after the solve (a fixed point, found by relaxed iteration: :meth:`DepthLift.from_depth`). The
+iteration needs only the sensing nodes' lateral motion, a linear map of their u_z: that map
+(:meth:`DepthLift.lateral_operator`, 2 n_plane x n_driven, e.g. 51 MB for the GelSight Mini's
+1,786 sensing nodes) is solved once per pad and material and cached on disk, so each iteration is
+one dense product and the frame needs one sparse solve (the whole mesh at the converged read
+positions) instead of one per iteration.
 
 Frames: sensor frame, mm; depth positive into the gel (mm); forces N (+ = pressing the gel in).
 Needs numpy and SciPy only (no torch, no warp).
@@ -21,14 +26,25 @@ Needs numpy and SciPy only (no torch, no warp).
 
 from __future__ import annotations
 
+import hashlib
+import logging
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.ndimage import map_coordinates
 
 from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_map
 from tactile_deploy.fem.elasticity import assemble_stiffness_numpy
+from tactile_deploy.fem.simulator import cache_dir, save_cached
 from tactile_deploy.fem.sparse_solver import SparseCholesky
 from tactile_deploy.pad.mesh import PadMesh
+
+log = logging.getLogger(__name__)
+
+#: Version of the cached lateral operator file; bump when its meaning changes.
+LATERAL_CACHE_VERSION = 1
+#: Right-hand sides per sparse solve while the lateral operator is built.
+_OPERATOR_BLOCK = 256
 
 
 def sample_depth_grid(depth_mm: np.ndarray, grid, xy_mm: np.ndarray) -> np.ndarray:
@@ -77,6 +93,49 @@ class DepthLift:
         self._T = dofs.T.tocsr()
         self._factor = SparseCholesky(self._K_ff)
         self._n_q = Kq.shape[0]
+        self._key = hashlib.sha256(
+            f"v{LATERAL_CACHE_VERSION}|{mesh.content_hash}|{self.nu!r}|{supports.model_dump_json()}|"
+            f"{formulation}".encode()).hexdigest()[:20]
+        self._lateral: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ lateral operator
+    @property
+    def lateral_cache_path(self):
+        """Where :meth:`lateral_operator` caches its matrix (the operator cache folder,
+        ``$TACTILE_DEPLOY_CACHE_DIR`` or ``~/.cache/tactile-deploy``; keyed by mesh, nu, supports
+        and formulation)."""
+        return cache_dir() / f"depth_lift_lateral_{self._key}.npy"
+
+    def lateral_operator(self, use_cache: bool = True) -> np.ndarray:
+        """(2 n_plane, n_driven) float64: the sensing nodes' lateral displacements (mm; rows: x of
+        every sensing node, then y) per mm of the driven sensing nodes' u_z. Built once (sparse
+        solves of ``_OPERATOR_BLOCK`` right-hand sides at a time: ~20 s for the GelSight Mini's
+        pad), then read from the cache."""
+        if self._lateral is not None:
+            return self._lateral
+        n = self.mesh.n_plane
+        shape = (2 * n, len(self._p))
+        path = self.lateral_cache_path
+        if use_cache and path.is_file():
+            try:
+                a = np.load(path)
+                if a.shape == shape and np.all(np.isfinite(a)):
+                    self._lateral = a
+                    return a
+                log.warning("cached lateral operator %s has the wrong shape; recomputing", path)
+            except (OSError, ValueError) as e:
+                log.warning("cached lateral operator %s is unreadable (%s); recomputing", path, e)
+        rows = np.concatenate([3 * np.arange(n), 3 * np.arange(n) + 1])
+        t_xy = self._T[rows]
+        t_f = t_xy[:, self._f].tocsr()
+        a = t_xy[:, self._p].toarray()
+        for start in range(0, len(self._p), _OPERATOR_BLOCK):
+            cols = slice(start, start + _OPERATOR_BLOCK)
+            a[:, cols] -= t_f @ self._factor.solve(self._K_fp[:, cols].toarray())
+        if use_cache:
+            save_cached(path, a)
+        self._lateral = a
+        return a
 
     # ------------------------------------------------------------------ solving
     def solve_uz(self, uz_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,7 +155,7 @@ class DepthLift:
         return u, f
 
     def from_depth(self, depth_mm: np.ndarray, grid, iterations: int = 8,
-                   tol_mm: float = 2e-3, relaxation: float = 0.7
+                   tol_mm: float = 2e-3, relaxation: float = 0.7, lateral: str = "operator"
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Deformed vertices (n, 3) float64 mm and sensing-node forces (n_plane,) N for a depth
         map on ``grid``.
@@ -104,17 +163,32 @@ class DepthLift:
         The depth map shows the surface where it is now: a sensing node that moved sideways
         by ``u_xy`` must have ``u_z = -depth(x0 + u_xy)``. Solved by relaxed fixed-point
         iteration on the read positions (``x <- x + relaxation (x0 + u_xy(x) - x)``) until they
-        move less than ``tol_mm``, at most ``iterations`` solves (deep presses of thick gels
-        move the surface sideways by half a millimetre; 3-5 solves reach 2 um).
+        move less than ``tol_mm``, at most ``iterations`` steps (deep presses of thick gels
+        move the surface sideways by half a millimetre; 3-5 steps reach 2 um), then the whole
+        mesh solved at the last read positions. ``lateral``: ``"operator"`` takes each step's
+        u_xy from :meth:`lateral_operator` (one dense product), ``"solve"`` from a sparse solve
+        of the whole mesh (the same numbers to round-off, one solve per step).
         """
+        if lateral not in ("operator", "solve"):
+            raise ValueError(f"lateral must be 'operator' or 'solve', got {lateral!r}")
+        n = self.mesh.n_plane
+        a = self.lateral_operator() if lateral == "operator" else None
         xy0 = self.mesh.vertices[self.mesh.sensing_nodes, :2]
         xy = xy0
         for _ in range(max(1, int(iterations))):
-            u, f = self.solve_uz(-sample_depth_grid(depth_mm, grid, xy))
-            step = xy0 + u[: self.mesh.n_plane, :2] - xy
+            read = xy
+            uz = -sample_depth_grid(depth_mm, grid, read)
+            if a is None:
+                u, f = self.solve_uz(uz)
+                u_xy = u[:n, :2]
+            else:
+                u_xy = (a @ uz[self.driven]).reshape(2, n).T
+            step = xy0 + u_xy - read
             if np.abs(step).max() < tol_mm:
                 break
-            xy = xy + relaxation * step
+            xy = read + relaxation * step
+        if a is not None:
+            u, f = self.solve_uz(uz)
         return self.mesh.vertices + u, f
 
     def forces_from_vertices(self, vertices_mm: np.ndarray) -> np.ndarray:

@@ -5,9 +5,10 @@ each frame into a mesh with :class:`PhysicsPredictor`: the imaging pipeline's de
 family's depth grid -> :class:`~tactile_deploy.fem.depth_lift.DepthLift` of the pad (linear FEM,
 the depth as the sensing surface's vertical displacement, free to slide sideways) -> every
 vertex, and the contact forces from the same solve. It works for any pad family without
-training; it is slower than the learned model (one sparse solve per iteration, tens of ms on
-10k-node pads) and carries every error of the depth map into the mesh (no prior of what
-contacts look like).
+training; it is slower than the learned model (one sparse solve per frame, tens of ms on
+10k-node pads, after a start of 20-40 s that builds the pad's factor and, once per pad and
+material, its lateral operator) and carries every error of the depth map into the mesh (no
+prior of what contacts look like).
 
 ``PhysicsPredictor`` has the interface the run loop uses of
 :class:`~tactile_deploy.runtime.predictor.MeshPredictor` (``infer``, ``predict_frame``,
@@ -76,6 +77,7 @@ class PhysicsPredictor:
         supports = family_supports(family) if family is not None else None
         kwargs = {} if supports is None else {"supports": supports}
         self.lift = DepthLift(mesh, m.material.nu, m.material.E_mpa, **kwargs)
+        self.lift.lateral_operator()   # built (or read from the cache) now, not in the first frame
         self.plugin = plugin
         self.pipeline = pipeline if pipeline is not None else ImagingPipeline.from_plugin(plugin)
         self.depth_grid = m.depth_grid
