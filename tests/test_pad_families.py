@@ -119,21 +119,31 @@ def test_depth_lift_reproduces_the_contact_fem():
     np.testing.assert_allclose(f, -res.contact_forces_n[:, 2], atol=1e-6 * res.force_n)
 
 
+def _box_pad_and_grid():
+    """A small box pad (8 x 8 x 3 mm) and a 0.1 mm depth grid over its central 6 x 6 mm."""
+    geo = PadGeometry(name="b", shape="box", width_mm=8.0, length_mm=8.0, thickness_mm=3.0,
+                      edge_mm=1.0, core_edge_mm=0.5, core_half_width_mm=3.0,
+                      core_half_length_mm=3.0, n_layers=3)
+    grid = depth_grid_over(SensingArea(x_min_mm=-3, x_max_mm=3, y_min_mm=-3, y_max_mm=3), 0.1)
+    return build_pad_mesh(geo), grid
+
+
+def _paraboloid(grid, x0_mm: float, radius_mm: float, depth_mm: float) -> np.ndarray:
+    """Depth map (mm) of a paraboloid of ``radius_mm`` at (x0, 0) pressed ``depth_mm``."""
+    x = grid.x_min_mm + (np.arange(grid.nx) + 0.5) * grid.pitch_x_mm
+    y = grid.y_max_mm - (np.arange(grid.ny) + 0.5) * grid.pitch_y_mm
+    r2 = (x[None, :] - x0_mm) ** 2 + y[:, None] ** 2
+    return np.clip(depth_mm - r2 / (2 * radius_mm), 0, None)
+
+
 def test_depth_lift_puts_each_node_on_the_depth_surface_and_fixed_sides_hold():
     """Nodes end where the depth map says the surface is (after sliding sideways); fixed side
     walls stay put."""
     from tactile_deploy.fem.constraints import Supports
     from tactile_deploy.fem.depth_lift import DepthLift, sample_depth_grid
 
-    geo = PadGeometry(name="b", shape="box", width_mm=8.0, length_mm=8.0, thickness_mm=3.0,
-                      edge_mm=1.0, core_edge_mm=0.5, core_half_width_mm=3.0,
-                      core_half_length_mm=3.0, n_layers=3)
-    mesh = build_pad_mesh(geo)
-    grid = depth_grid_over(SensingArea(x_min_mm=-3, x_max_mm=3, y_min_mm=-3, y_max_mm=3), 0.1)
-    x = grid.x_min_mm + (np.arange(grid.nx) + 0.5) * grid.pitch_x_mm
-    y = grid.y_max_mm - (np.arange(grid.ny) + 0.5) * grid.pitch_y_mm
-    r2 = x[None, :] ** 2 + y[:, None] ** 2
-    depth = np.clip(0.5 - r2 / (2 * 2.0), 0, None)          # a 2 mm paraboloid 0.5 mm deep
+    mesh, grid = _box_pad_and_grid()
+    depth = _paraboloid(grid, 0.0, 2.0, 0.5)          # a 2 mm paraboloid 0.5 mm deep
     lift = DepthLift(mesh, 0.48, 0.3, Supports(side="fixed"))
     v, f = lift.from_depth(depth, grid)
     top = v[: mesh.n_plane]
@@ -150,14 +160,8 @@ def test_depth_lift_lateral_operator_gives_the_solves_numbers_and_is_cached(tmp_
     from tactile_deploy.fem.depth_lift import DepthLift
 
     monkeypatch.setenv("TACTILE_DEPLOY_CACHE_DIR", str(tmp_path))
-    geo = PadGeometry(name="b", shape="box", width_mm=8.0, length_mm=8.0, thickness_mm=3.0,
-                      edge_mm=1.0, core_edge_mm=0.5, core_half_width_mm=3.0,
-                      core_half_length_mm=3.0, n_layers=3)
-    mesh = build_pad_mesh(geo)
-    grid = depth_grid_over(SensingArea(x_min_mm=-3, x_max_mm=3, y_min_mm=-3, y_max_mm=3), 0.1)
-    x = grid.x_min_mm + (np.arange(grid.nx) + 0.5) * grid.pitch_x_mm
-    y = grid.y_max_mm - (np.arange(grid.ny) + 0.5) * grid.pitch_y_mm
-    depth = np.clip(0.6 - ((x[None, :] - 0.4) ** 2 + y[:, None] ** 2) / (2 * 1.5), 0, None)
+    mesh, grid = _box_pad_and_grid()
+    depth = _paraboloid(grid, 0.4, 1.5, 0.6)
     lift = DepthLift(mesh, 0.48, 0.3)
     v_op, f_op = lift.from_depth(depth, grid)
     v_solve, f_solve = lift.from_depth(depth, grid, lateral="solve")
