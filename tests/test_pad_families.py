@@ -173,5 +173,11 @@ def test_depth_lift_lateral_operator_gives_the_solves_numbers_and_is_cached(tmp_
     assert again.lateral_cache_path == lift.lateral_cache_path
     np.testing.assert_array_equal(np.load(again.lateral_cache_path), lift.lateral_operator())
     assert DepthLift(mesh, 0.45, 0.3).lateral_cache_path != lift.lateral_cache_path
+    for bad in (np.zeros((3, 3)), np.full_like(lift.lateral_operator(), np.nan)):   # recomputed
+        np.save(lift.lateral_cache_path, bad)
+        np.testing.assert_allclose(DepthLift(mesh, 0.48, 0.3).lateral_operator(), lift.lateral_operator(),
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.load(lift.lateral_cache_path), lift.lateral_operator(),
+                                   rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="lateral must be 'operator' or 'solve'"):
         lift.from_depth(depth, grid, lateral="dense")

@@ -27,7 +27,6 @@ Needs numpy and SciPy only (no torch, no warp).
 from __future__ import annotations
 
 import hashlib
-import logging
 
 import numpy as np
 import scipy.sparse as sp
@@ -35,11 +34,10 @@ from scipy.ndimage import map_coordinates
 
 from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_map
 from tactile_deploy.fem.elasticity import assemble_stiffness_numpy
-from tactile_deploy.fem.simulator import cache_dir, save_cached
+from tactile_deploy.fem.simulator import cache_dir, load_cached, save_cached
 from tactile_deploy.fem.sparse_solver import SparseCholesky
 from tactile_deploy.pad.mesh import PadMesh
 
-log = logging.getLogger(__name__)
 
 #: Version of the cached lateral operator file; bump when its meaning changes.
 LATERAL_CACHE_VERSION = 1
@@ -116,15 +114,10 @@ class DepthLift:
         n = self.mesh.n_plane
         shape = (2 * n, len(self._p))
         path = self.lateral_cache_path
-        if use_cache and path.is_file():
-            try:
-                a = np.load(path)
-                if a.shape == shape and np.all(np.isfinite(a)):
-                    self._lateral = a
-                    return a
-                log.warning("cached lateral operator %s has the wrong shape; recomputing", path)
-            except (OSError, ValueError) as e:
-                log.warning("cached lateral operator %s is unreadable (%s); recomputing", path, e)
+        a = load_cached(path, shape, "lateral operator") if use_cache else None
+        if a is not None:
+            self._lateral = a
+            return a
         rows = np.concatenate([3 * np.arange(n), 3 * np.arange(n) + 1])
         t_xy = self._T[rows]
         t_f = t_xy[:, self._f].tocsr()

@@ -62,6 +62,23 @@ def cache_dir() -> Path:
 _cache_warned = False
 
 
+def load_cached(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray | None:
+    """The cached array at ``path`` when it is there, has ``shape`` and is finite; else None
+    (after a warning naming ``what`` when a file is there but wrong or unreadable): the caller
+    computes it again."""
+    if not path.is_file():
+        return None
+    try:
+        arr = np.load(path)
+    except (OSError, ValueError) as e:
+        log.warning("cached %s %s is unreadable (%s); recomputing", what, path, e)
+        return None
+    if arr.shape == tuple(shape) and np.all(np.isfinite(arr)):
+        return arr
+    log.warning("cached %s %s has the wrong shape or non-finite values; recomputing", what, path)
+    return None
+
+
 def save_cached(path: Path, arr: np.ndarray) -> bool:
     """Write ``arr`` to the cache file ``path`` (.npy, atomic). When the cache cannot be
     written, warn once per process and return False: the caller keeps its result in memory."""

@@ -43,17 +43,14 @@ dense matrix-vector product (9 MB of float64: about 1-2 ms on one core, memory b
 from __future__ import annotations
 
 import hashlib
-import logging
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 
 from tactile_deploy.fem.material import Material
-from tactile_deploy.fem.simulator import ContactSimulator, cache_dir, save_cached
+from tactile_deploy.fem.simulator import ContactSimulator, cache_dir, load_cached, save_cached
 from tactile_deploy.pad.asset import load_pad
-
-log = logging.getLogger(__name__)
 
 #: Version of the cached stiffness file; bump when its meaning changes.
 _CACHE_VERSION = 1
@@ -119,14 +116,9 @@ class SurfaceStiffness:
         path = cls.cache_path(mesh, nu)
         key = path.stem.rsplit("_", 1)[1]
         k = len(sim.contact_nodes)
-        if use_cache and path.is_file():
-            try:
-                m = np.load(path)
-                if m.shape == (k, k) and np.all(np.isfinite(m)):
-                    return cls(np.asarray(sim.contact_nodes, np.int64), m, key)
-                log.warning("cached surface stiffness %s has the wrong shape; recomputing", path)
-            except (OSError, ValueError) as e:
-                log.warning("cached surface stiffness %s is unreadable (%s); recomputing", path, e)
+        m = load_cached(path, (k, k), "surface stiffness") if use_cache else None
+        if m is not None:
+            return cls(np.asarray(sim.contact_nodes, np.int64), m, key)
         if (cache_dir() / f"surface_{sim.operator_key}" / "C.npy").is_file():
             # the contact simulator already computed this compliance (same mesh, nu, supports)
             compliance = ContactSimulator(mesh, Material(nu=nu), assembly="numpy").compliance

@@ -114,20 +114,16 @@ class CoulombSolver:
     def C3(self) -> np.ndarray:
         """(3k, 3k) compliance of the x, y, z dofs of the contact nodes, mm/N at E = 1."""
         if self._C3 is None:
-            from tactile_deploy.fem.simulator import cache_dir, save_cached
+            from tactile_deploy.fem.simulator import cache_dir, load_cached, save_cached
 
             sim = self.sim
             folder = cache_dir() / f"coulomb_{sim.operator_key}"
             path = folder / "C3.npy"
             cols = self.columns
-            if sim._use_cache and path.exists():
-                try:
-                    C3 = np.load(path)
-                    if C3.shape == (len(cols), len(cols)):
-                        self._C3 = C3
-                        return C3
-                except (OSError, ValueError):
-                    pass
+            C3 = load_cached(path, (len(cols), len(cols)), "Coulomb compliance") if sim._use_cache else None
+            if C3 is not None:
+                self._C3 = C3
+                return C3
             n_q = sim.K_q.shape[0]
             C3 = np.empty((len(cols), len(cols)))
             for start in range(0, len(cols), 256):
