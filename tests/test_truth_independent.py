@@ -119,6 +119,15 @@ def independent_ball_at_1mm():
                             h_fine_mm=0.1, steps=20)
 
 
+def surface_difference_mm(sol, expected):
+    """(rho (k,) mm, |difference| (24, k) mm): the resolved solution's deformed sensing surface
+    against the independent FEM's profile, along 24 azimuths, every 5 um in radius."""
+    rho = np.arange(0.0, PAD_RADIUS_MM - 0.5, 0.005)
+    ours = surface_profile_mm(sol, rho, np.arange(0.0, 360.0, 15.0))
+    theirs = np.interp(rho, expected.profile_r_mm, expected.profile_z_mm)
+    return rho, np.abs(ours - theirs[None])
+
+
 @pytest.mark.slow
 def test_sphere_at_1mm_has_the_independent_fems_surface(ball_at_1mm, independent_ball_at_1mm):
     """The deformed sensing surface within 10 um of the independent FEM's everywhere (24
@@ -126,10 +135,7 @@ def test_sphere_at_1mm_has_the_independent_fems_surface(ball_at_1mm, independent
     truth mesh followed the ball's curvature at its steep rim)."""
     expected = independent_ball_at_1mm
     sol, _ = ball_at_1mm
-    rho = np.arange(0.0, PAD_RADIUS_MM - 0.5, 0.005)
-    ours = surface_profile_mm(sol, rho, np.arange(0.0, 360.0, 15.0))
-    theirs = np.interp(rho, expected.profile_r_mm, expected.profile_z_mm)
-    diff = np.abs(ours - theirs[None])
+    rho, diff = surface_difference_mm(sol, expected)
     worst = np.unravel_index(diff.argmax(), diff.shape)
     print(f"surface: largest difference {diff.max() * 1e3:.2f} um at r = {rho[worst[1]]:.3f} mm; "
           f"contact radius {expected.contact_radius_mm:.3f} mm")
@@ -158,10 +164,8 @@ def test_sphere_at_1mm_meets_the_independent_fem_with_the_bulk_graded_slower(ind
     the surface within 10 um (measured 8.61 um). Not the default: the neo-Hookean cone's solve
     fails at 1.15, its elements folding below the apex (docs/fem.md)."""
     expected = independent_ball_at_1mm
-    sol, field = press_ball_at_1mm(bulk_growth=1.15)
-    rho = np.arange(0.0, PAD_RADIUS_MM - 0.5, 0.005)
-    diff = np.abs(surface_profile_mm(sol, rho, np.arange(0.0, 360.0, 15.0))
-                  - np.interp(rho, expected.profile_r_mm, expected.profile_z_mm)[None])
+    sol, _ = press_ball_at_1mm(bulk_growth=1.15)
+    _, diff = surface_difference_mm(sol, expected)
     print(f"bulk growth 1.15: {len(sol.mesh.vertices)} nodes, force {sol.force_n:.5f} N vs independent FEM "
           f"{expected.force_n:.5f} N (x{sol.force_n / expected.force_n:.4f}); surface within {diff.max() * 1e3:.2f} um")
     assert sol.force_n == pytest.approx(expected.force_n, rel=0.02)
