@@ -128,6 +128,22 @@ def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
     assert card.metadata == {k: str(v) for k, v in readout.metadata.items()}
 
 
+def test_training_crops_do_not_depend_on_the_number_of_workers():
+    """Each unit draws its presses from its own seed: two worker processes make the crops one
+    process makes, unit by unit, bit for bit."""
+    from tactile_deploy.training.shading_net.train import generate_crops
+
+    kwargs = dict(design="gelslim1", units=2, presses=3, seed=11, mix=(0.4, 0.2, 0.4), crop=24, log=lambda m: None)
+    serial, forked = generate_crops(**kwargs, workers=1), generate_crops(**kwargs, workers=2)
+    assert len(serial) == len(forked) == 6
+    np.testing.assert_array_equal(serial.features(), forked.features())
+    np.testing.assert_array_equal(serial.depth_mm, forked.depth_mm)
+    assert list(serial.kinds) == list(forked.kinds)
+    assert np.abs(serial.depth_mm).max() > 0.1          # real presses, not empty maps
+    first = generate_crops(**{**kwargs, "units": 1}, workers=1)
+    np.testing.assert_array_equal(first.depth_mm, serial.depth_mm[:3])   # unit 1 alike whatever follows
+
+
 def test_shipped_readout_card_validates_and_names_its_graph(tmp_path):
     """exported/gelslim_readout.json is a read-out card of the graph beside it; the reader names
     the file, the field, what it expected and what it found."""

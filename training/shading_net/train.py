@@ -5,7 +5,8 @@
 
 Data flow: :func:`.family.family_configs` (units of the design) -> :func:`.data.unit_presses`
 (8-bit rectified frames and true depth on each unit's imaging grid: balls, the indenter library
-and procedural faces, ``--mix``) -> ``--crop`` x ``--crop``-cell crops around each contact (its
+and procedural faces, ``--mix``; each unit draws its presses from its own seed, so ``--workers``
+processes make the same crops as one) -> ``--crop`` x ``--crop``-cell crops around each contact (its
 deepest cell, jittered by up to 8 cells, inside the grid; :mod:`.crops`) -> :mod:`.fitting`:
 AdamW with a one-cycle learning rate, loss: mean squared error of the gradients (mm per mm) and
 of the depth (in ``DEPTH_UNIT_MM``) -> ONNX (opset 17, dynamic batch and grid size) with the
@@ -45,7 +46,65 @@ def _cache_spec(args) -> dict:
 
     return {"design": args.design, "units": args.units, "presses": args.presses, "seed": args.seed,
             "crop_cells": args.crop, "jitter_cells": JITTER_CELLS, "mix": list(args.mix),
-            "imaging_grid": "whole box of model-grid cells"}
+            "imaging_grid": "whole box of model-grid cells", "unit_seeds": UNIT_SEEDS}
+
+
+#: How each unit's presses are seeded (recorded in a crop file; older files drew every unit's
+#: presses from one stream and are made again).
+UNIT_SEEDS = "numpy SeedSequence(seed).spawn(units)"
+
+#: Shared with the worker processes (fork): the units and the pad's simulator, built once.
+_UNITS: dict = {}
+
+
+def _unit_crops(u: int):
+    """Crops of unit ``u`` of ``_UNITS`` (run in a worker process or in this one)."""
+    from .crops import contact_crops
+    from .data import unit_presses
+
+    rng = np.random.default_rng(_UNITS["seeds"][u])
+    presses, _ = unit_presses(_UNITS["configs"][u], _UNITS["presses"], rng, _UNITS["simulator"], _UNITS["mix"])
+    return contact_crops(presses, rng, _UNITS["crop"])
+
+
+def generate_crops(design: str, units: int, presses: int, seed: int, mix, crop: int, workers: int = 1,
+                   log=print):
+    """Training crops of ``units`` virtual units of ``design``, ``presses`` each
+    (:class:`.crops.Crops`, units in order). The units are drawn from ``seed``; unit ``u``'s
+    presses and crops from the ``u``-th child of ``SeedSequence(seed)``, so the result does not
+    depend on ``workers`` (processes forked after the pad's FEM operators are built, one unit
+    each at a time)."""
+    import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tactile_deploy.sensors.virtual import VirtualSensor
+
+    from .crops import Crops
+    from .data import PressMix
+    from .family import Tolerances, family_configs
+
+    t0 = time.perf_counter()
+    configs = list(family_configs(design, units, np.random.default_rng(seed), Tolerances()))
+    simulator = VirtualSensor(configs[0]).simulator
+    simulator.prepare()
+    _UNITS.update(configs=configs, seeds=np.random.SeedSequence(seed).spawn(units), presses=presses,
+                  simulator=simulator, mix=PressMix(*mix), crop=crop)
+    parts = []
+    try:
+        if workers == 1:
+            results = map(_unit_crops, range(units))
+        else:
+            pool = ProcessPoolExecutor(min(workers, units), mp_context=multiprocessing.get_context("fork"))
+            results = pool.map(_unit_crops, range(units))
+        for u, part in enumerate(results):
+            parts.append(part)
+            log(f"unit {u + 1}/{units}: {presses} presses ({time.perf_counter() - t0:.0f} s)")
+    finally:
+        if workers > 1:
+            pool.shutdown()
+        _UNITS.clear()
+    return Crops.concatenate(parts)
 
 
 def _check_args(args) -> None:
@@ -58,6 +117,8 @@ def _check_args(args) -> None:
             raise UsageError(f"{option} must be >= {low}, got {value}")
     if args.threads is not None and args.threads < 1:
         raise UsageError(f"--threads must be >= 1, got {args.threads}")
+    if args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if not (np.isfinite(args.gradient_clip) and args.gradient_clip > 0):
         raise UsageError(f"--gradient-clip must be a number > 0 (mm per mm), got {args.gradient_clip}")
     if not (np.isfinite(args.gradient_weight) and args.gradient_weight >= 0):
@@ -121,9 +182,9 @@ def _mix(text: str) -> tuple[float, float, float]:
 def main(argv=None) -> int:
     from tactile_deploy.imaging import learned_readout as lr_mod
 
-    from .crops import Crops, contact_crops, load_crops, save_crops
-    from .data import DEPTH_RANGE_MM, RADII_MM, PressMix, unit_presses
-    from .family import Tolerances, family_configs
+    from .crops import load_crops, save_crops
+    from .data import DEPTH_RANGE_MM, RADII_MM
+    from .family import Tolerances
     from .fitting import fit_network
 
     ap = argparse.ArgumentParser(prog="python -m tactile_deploy.training.shading_net", description=__doc__.splitlines()[0])
@@ -140,6 +201,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=5,
                     help="seed of the units, the presses and the training (default: %(default)s)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="processes that make the presses, one unit each at a time; the crops do not depend on it "
+                    "(default: %(default)s)")
+    ap.add_argument("--device", default=None,
+                    help="torch device of the training, e.g. cpu or cuda (default: cuda when there is one)")
     ap.add_argument("--gradient-clip", type=float, default=1.0,
                     help="gradient targets clipped to +- this (mm per mm; default: %(default)s)")
     ap.add_argument("--gradient-weight", type=float, default=1.0,
@@ -162,20 +228,13 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    rng = np.random.default_rng(args.seed)
     tol = Tolerances()
     if args.data_cache is not None and args.data_cache.is_file():
         crops = load_crops(args.data_cache)
         print(f"crops from {args.data_cache}", flush=True)
     else:
-        parts, simulator = [], None
-        mix = PressMix(*args.mix)
-        for u, config in enumerate(family_configs(args.design, args.units, rng, tol)):
-            presses, simulator = unit_presses(config, args.presses, rng, simulator, mix)
-            parts.append(contact_crops(presses, rng, args.crop))
-            print(f"unit {u + 1}/{args.units}: {args.presses} presses "
-                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
-        crops = Crops.concatenate(parts)
+        crops = generate_crops(args.design, args.units, args.presses, args.seed, args.mix, args.crop, args.workers,
+                               log=lambda m: print(m, flush=True))
         if args.data_cache is not None:
             save_crops(args.data_cache, crops, _cache_spec(args))
             print(f"wrote {len(crops)} crops to {args.data_cache} "
@@ -196,13 +255,16 @@ def main(argv=None) -> int:
         train_info = {**trained, "seconds": round(float(saved["seconds"]), 1),
                       "weights_from": args.weights.name}
     else:
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
         net, losses = fit_network(crops, args.width, args.epochs, args.seed,
                                   gradient_clip=args.gradient_clip,
-                                  gradient_weight=args.gradient_weight,
+                                  gradient_weight=args.gradient_weight, device=device,
                                   log=lambda m: print(m, flush=True))
         train_info = {"width": args.width, "epochs": args.epochs, "batch": 32, "lr": 2e-3,
                       "gradient_clip": args.gradient_clip, "gradient_weight": args.gradient_weight,
-                      "device": "cpu"}
+                      "device": device, "seconds": round(time.perf_counter() - t0 - t_data, 1)}
+        if device.startswith("cuda"):
+            train_info["device_name"] = torch.cuda.get_device_name(torch.device(device))
     metadata = {"readout_format": lr_mod.READOUT_FORMAT, "feature_version": lr_mod.FEATURE_VERSION,
                 "colour_scale_grey": repr(lr_mod.COLOUR_SCALE_GREY),
                 "position_scale_mm": repr(lr_mod.POSITION_SCALE_MM), "saturation_level": 254,
