@@ -23,6 +23,7 @@ For each family's virtual sensor (``tactile_deploy/assets/sensors/<family>.json`
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -71,8 +72,11 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
     mm_per_px = float(sensor.optics.camera.mm_per_px_x)
     readout = model_path(f"{name}_readout.onnx")
     readers = [("the fitted shading model", None)]
+    units = None
     if readout.is_file():
         readers.append((f"learned read-out `exported/{readout.name}`", readout))
+        card = readout.with_suffix(".json")
+        units = json.loads(card.read_text())["family"]["units"] if card.is_file() else None
     grid = presses = sp = truth_vertices = None
     results = []
     for label, readout_file in readers:
@@ -118,22 +122,25 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
                         "mesh": np.array(mesh_err), "shape": shape, "shape_names": sp.names,
                         "shape48": shape48, "shape48_names": sp48.names,
                         "cal": cal.metrics, "t_prepare": t_prepare, "t_cal": t_cal,
-                        "view_edge_extension_mm": plugin.manifest.view_edge_extension_mm})
+                        "view_edge_extension_mm": plugin.manifest.view_edge_extension_mm,
+                        "readout_units": units})
     return results
 
 
 def markdown(results: list[dict]) -> str:
     from bench.report import machine_line
 
+    units_text = ", ".join(f"{r['family']}: {r['readout_units']}" for r in results
+                           if r["readout_units"] is not None and r["reader"].startswith("learned"))
     lines = ["## GelSight Mini and DIGIT virtual sensors, one-command calibration "
              "(`tactile-deploy bench families`)", "",
              (f"{machine_line()} (load average {os.getloadavg()[1]:.1f}: a shared "
               "machine). Each family's virtual sensor: 24 ball presses (radius 1.5 mm, "
               "0.4-1.1 mm) recorded in the real recordings' layout and calibrated by the one-command "
               "calibration, once with the fitted shading model and once with the family's learned "
-              "read-out (`--readout exported/<family>_readout.onnx`, trained on 8 virtual units "
-              "drawn around the design, never on the nominal unit measured here; its depth gain "
-              "from the ball's curvature); new presses: 8 "
+              "read-out (`--readout exported/<family>_readout.onnx`, trained on virtual units "
+              f"drawn around the design ({units_text}, its card), never on the nominal unit "
+              "measured here; its depth used as trained); new presses: 8 "
               "balls at least two contact radii inside the view, 8 within 1.2-1.7 of its edges "
               "(RMSE within 1.5 contact radii against the surface the frames were shaded from, "
               "family depth grid), their physics-lift meshes against the FEM (sensing nodes "

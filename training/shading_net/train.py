@@ -262,7 +262,7 @@ def main(argv=None) -> int:
                                   log=lambda m: print(m, flush=True))
         train_info = {"width": args.width, "epochs": args.epochs, "batch": 32, "lr": 2e-3,
                       "gradient_clip": args.gradient_clip, "gradient_weight": args.gradient_weight,
-                      "device": device, "seconds": round(time.perf_counter() - t0 - t_data, 1)}
+                      "seed": args.seed, "device": device, "seconds": round(time.perf_counter() - t0 - t_data, 1)}
         if device.startswith("cuda"):
             train_info["device_name"] = torch.cuda.get_device_name(torch.device(device))
     metadata = {"readout_format": lr_mod.READOUT_FORMAT, "feature_version": lr_mod.FEATURE_VERSION,
