@@ -111,6 +111,10 @@ def test_readout_files_that_break_the_contract_are_named(tmp_path):
     _, path = _tiny_network(tmp_path, {"feature_version": 99})
     with pytest.raises(ReadoutError, match="metadata field 'feature_version' must be '1'.*'99'"):
         LearnedReadout(path)
+    for bad in ("8", "sixty-four"):
+        _, path = _tiny_network(tmp_path, {"window_cells": bad})
+        with pytest.raises(ReadoutError, match=f"metadata field 'window_cells' must be a whole number of cells > 32, got '{bad}'"):
+            LearnedReadout(path)
 
 
 def test_training_command_writes_a_loadable_model_and_its_card(tmp_path):
@@ -142,6 +146,63 @@ def test_training_crops_do_not_depend_on_the_number_of_workers():
     assert np.abs(serial.depth_mm).max() > 0.1          # real presses, not empty maps
     first = generate_crops(**{**kwargs, "units": 1}, workers=1)
     np.testing.assert_array_equal(first.depth_mm, serial.depth_mm[:3])   # unit 1 alike whatever follows
+
+
+def test_window_starts_and_weights_cover_the_grid():
+    from tactile_deploy.imaging.learned_readout import WINDOW_OVERLAP_CELLS, window_starts, window_weights
+
+    assert window_starts(48, 64) == [0] and window_starts(64, 64) == [0]
+    assert window_starts(66, 64) == [0, 2]                      # the GelSight Mini's 66-cell-wide grid
+    for n, size in ((66, 64), (90, 48), (200, 64), (129, 40)):
+        starts = window_starts(n, size)
+        assert starts[0] == 0 and starts[-1] + size == n          # the grid's borders are window borders
+        assert all(b - a <= size - WINDOW_OVERLAP_CELLS for a, b in zip(starts, starts[1:]))
+        w = window_weights(n, size, starts)
+        total = np.zeros(n)
+        for a, row in zip(starts, w):
+            total[a:a + size] += row
+        assert total.min() > 0.99 and w[0][0] == 1.0 and w[-1][-1] == 1.0
+    with pytest.raises(ValueError, match="wider than the overlap"):
+        window_starts(40, 16)
+
+
+def test_a_grid_wider_than_the_training_crops_is_read_in_windows():
+    """The GelSight Mini's imaging grid is 66 cells wide and its read-out was trained on 64-cell
+    crops (``window_cells`` 64). Read whole, the network pads 6 columns on the right that training
+    never padded and over-reads a ball's falling flank there; read in windows, the cells only one
+    window covers are exactly that window's read, and the flank follows the surface the frame was
+    shaded from (the virtual Mini's FEM press; its pad's operators take ~45 s to build)."""
+    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.indenters import AnalyticSphere, ContactPose
+    from tactile_deploy.runtime.pipeline import GridResampler, Rectifier, rectify_frame, resample_to_grid
+    from tactile_deploy.sensors.catalog import load_sensor
+
+    readout = LearnedReadout(ROOT / "exported" / "gelsight_mini_readout.onnx")
+    assert readout.window_cells == 64
+    sensor = load_sensor("gelsight_mini")
+    camera = with_grid(sensor.optics.camera, imaging_grid(sensor.optics.camera, fast_sizes=False))
+    grid = camera.grid
+    assert (grid.ny, grid.nx) == (48, 66)
+    rect = Rectifier(camera, 2)
+    rng = np.random.default_rng(3)
+    reference = resample_to_grid(rectify_frame(sensor.renderer.reference_frame(rng), rect), rect)
+    out = sensor.press(AnalyticSphere(1.5), ContactPose(x_mm=grid.x_max_mm - 2.2, y_mm=-2.8, theta_deg=0.0,
+                                                       depth_mm=0.9), rng, truth=False)
+    truth = GridResampler(sensor.renderer.grid, grid)(np.asarray(out.surface_depth_mm, np.float32))
+    features = FeatureMaker(reference, grid)(resample_to_grid(rectify_frame(out.frame, rect), rect))
+
+    windowed = readout.depth_mm(features)
+    np.testing.assert_array_equal(windowed[:, :2], readout._run(features[:, :, :64])[:, :2])
+    np.testing.assert_array_equal(windowed[:, 64:], readout._run(features[:, :, 2:])[:, 62:])
+    whole = readout._run(features)
+    flank = (truth > 0.01) & (np.arange(grid.nx)[None, :] >= grid.nx - 8)   # the contact's last 2.2 mm
+    assert flank.sum() > 20
+
+    def rmse_um(depth):
+        return 1e3 * float(np.sqrt(np.mean((depth[flank] - truth[flank]) ** 2)))
+
+    assert rmse_um(windowed) < 0.4 * rmse_um(whole), (rmse_um(windowed), rmse_um(whole))   # 14.9 vs 53.6 um
+    assert rmse_um(windowed) < 20.0, rmse_um(windowed)     # the ball target inside the view
 
 
 def test_shipped_readout_card_validates_and_names_its_graph(tmp_path):

@@ -26,7 +26,15 @@ on (``gradients``, (B, 2, H, W), along image columns (+x) and rows (-y), mm per 
 runtime does not use.
 
 The ONNX file carries its contract in its metadata (``readout_format``, ``feature_version``,
-``colour_scale_grey``, ``position_scale_mm``, ``saturation_level``, ``design``), checked on load.
+``colour_scale_grey``, ``position_scale_mm``, ``saturation_level``, ``design``), checked on load,
+and optionally ``window_cells``: the side of the crops it was trained on. The network pads its
+input on the right and at the bottom to a multiple of 8 cells; a grid wider or taller than the
+training crops would be padded where training never padded (the GelSight Mini's 66-cell-wide grid
+read by a network trained on 64-cell crops over-read every falling flank at its right edge by up to
+0.2 mm). Such a grid is read in overlapping windows of ``window_cells`` along that axis
+(:func:`window_starts`), blended with weights that fall to 0 towards the windows' inner edges
+(:func:`window_weights`), so that every cell is read as in training. Without the key, the whole
+grid is read at once.
 """
 
 from __future__ import annotations
@@ -54,6 +62,38 @@ READOUT_FORMAT = "tactile-deploy learned read-out 1"
 
 class ReadoutError(ValueError):
     """A learned read-out file, or a frame given to it, is not what it must be."""
+
+
+#: Cells over which overlapping windows hand over to each other (:func:`window_weights`).
+WINDOW_OVERLAP_CELLS = 16
+
+
+def window_starts(n: int, size: int, overlap: int = WINDOW_OVERLAP_CELLS) -> list[int]:
+    """First cells of the windows of ``size`` cells that cover ``n`` cells along one axis: one
+    window (start 0) when ``n <= size``, else the fewest windows that overlap by at least
+    ``overlap`` cells, spread evenly, the first at 0 and the last ending at ``n``."""
+    if n <= size:
+        return [0]
+    if size <= overlap:
+        raise ValueError(f"window of {size} cells must be wider than the overlap ({overlap})")
+    k = -(-(n - overlap) // (size - overlap))      # ceil
+    k = max(k, 2)
+    return [round(i * (n - size) / (k - 1)) for i in range(k)]
+
+
+def window_weights(n: int, size: int, starts: list[int], overlap: int = WINDOW_OVERLAP_CELLS) -> np.ndarray:
+    """(len(starts), min(n, size)) float32 blending weights of each window's cells: 1, falling
+    linearly to near 0 over ``overlap`` cells towards each window edge that lies inside the grid
+    (an edge at the grid's own border keeps weight 1: training crops had it there too)."""
+    size = min(n, size)
+    ramp = (np.arange(size, dtype=np.float32) + 0.5) / overlap
+    w = np.ones((len(starts), size), np.float32)
+    for i, s in enumerate(starts):
+        if s > 0:
+            w[i] = np.minimum(w[i], ramp)
+        if s + size < n:
+            w[i] = np.minimum(w[i], ramp[::-1])
+    return w
 
 
 class FeatureMaker:
@@ -135,8 +175,34 @@ class LearnedReadout:
         if "depth_mm" not in self.output_names:
             raise ReadoutError(f"learned read-out {self.path}: no output 'depth_mm' "
                                f"(outputs {self.output_names})")
+        window = meta.get("window_cells")
+        try:
+            self.window_cells = None if window is None else int(window)
+        except ValueError:
+            self.window_cells = None
+        if window is not None and (self.window_cells is None or self.window_cells <= 2 * WINDOW_OVERLAP_CELLS):
+            raise ReadoutError(f"learned read-out {self.path}: metadata field 'window_cells' must be a whole "
+                               f"number of cells > {2 * WINDOW_OVERLAP_CELLS}, got {window!r}")
 
-    def depth_mm(self, features: np.ndarray) -> np.ndarray:
-        """Depth (H, W) float32 mm from features (11, H, W) float32."""
+    def _run(self, features: np.ndarray) -> np.ndarray:
         out = self.session.run(["depth_mm"], {self.input_name: features[None]})[0]
         return np.asarray(out[0], np.float32)
+
+    def depth_mm(self, features: np.ndarray) -> np.ndarray:
+        """Depth (H, W) float32 mm from features (11, H, W) float32; in overlapping windows of
+        ``window_cells`` along an axis longer than that (module docstring)."""
+        h, w = features.shape[-2:]
+        size = self.window_cells
+        if size is None or (h <= size and w <= size):
+            return self._run(features)
+        rows, cols = window_starts(h, size), window_starts(w, size)
+        wr, wc = window_weights(h, size, rows), window_weights(w, size, cols)
+        sh, sw = min(h, size), min(w, size)
+        total = np.zeros((h, w), np.float32)
+        weight = np.zeros((h, w), np.float32)
+        for i, r in enumerate(rows):
+            for j, c in enumerate(cols):
+                wij = wr[i][:, None] * wc[j][None, :]
+                total[r:r + sh, c:c + sw] += wij * self._run(features[:, r:r + sh, c:c + sw])
+                weight[r:r + sh, c:c + sw] += wij
+        return total / weight

@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     metadata = {"readout_format": lr_mod.READOUT_FORMAT, "feature_version": lr_mod.FEATURE_VERSION,
                 "colour_scale_grey": repr(lr_mod.COLOUR_SCALE_GREY),
                 "position_scale_mm": repr(lr_mod.POSITION_SCALE_MM), "saturation_level": 254,
-                "design": args.design}
+                "design": args.design, "window_cells": str(args.crop)}
     export_onnx(net, args.out, metadata)
     import sys
 
