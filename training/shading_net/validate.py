@@ -7,7 +7,8 @@ Presses of the virtual sensor ``--sensor`` (another unit of the design than the 
 drawn as in training (:func:`.data.unit_presses`): a quarter balls, three quarters procedural
 faces (:mod:`.shapes`), none of the indenter library's shapes and none of the shared meshes, so
 that choosing a network here leaves the shared meshes unseen for the benchmark. Each network
-reads the presses' features on the unit's imaging grid (no camera mapping, depth gain 1); the
+reads the presses' features on the unit's imaging grid as the runtime does (in windows when its
+metadata names ``window_cells``; no camera mapping, depth gain 1); the
 error is the depth RMSE (um) over the contact and its rim (true depth > 10 um, grown by 4
 cells), mean and worst per kind.
 """
