@@ -241,6 +241,13 @@ def test_shading_net_command_line(tmp_path):
     res = subprocess.run([sys.executable, "-m", "tactile_deploy.training.shading_net", "--units", "0", "--out", str(tmp_path / "r.onnx")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120, check=False)
     assert res.returncode == 2 and res.stderr.strip() == "error: --units must be >= 1, got 0", res.stderr
+    for option, value, message in (("--workers", "0", "error: --workers must be >= 1, got 0"),
+                                   ("--device", "gpu0", "error: --device must be a torch device such as cpu or cuda, "
+                                                        "got 'gpu0'")):
+        res = subprocess.run([sys.executable, "-m", "tactile_deploy.training.shading_net", option, value, "--out",
+                              str(tmp_path / "r.onnx")], capture_output=True, text=True, env=env, cwd=tmp_path,
+                             timeout=120, check=False)
+        assert res.returncode == 2 and res.stderr.strip() == message, res.stderr
     res = subprocess.run([sys.executable, "-m", "tactile_deploy.training.shading_net", "--help"], capture_output=True, text=True,
                          env=env, cwd=tmp_path, timeout=120, check=False)
     text = " ".join(res.stdout.split())

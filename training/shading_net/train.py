@@ -90,18 +90,15 @@ def generate_crops(design: str, units: int, presses: int, seed: int, mix, crop: 
     simulator.prepare()
     _UNITS.update(configs=configs, seeds=np.random.SeedSequence(seed).spawn(units), presses=presses,
                   simulator=simulator, mix=PressMix(*mix), crop=crop)
-    parts = []
+    parts, pool = [], None
     try:
-        if workers == 1:
-            results = map(_unit_crops, range(units))
-        else:
+        if workers > 1:
             pool = ProcessPoolExecutor(min(workers, units), mp_context=multiprocessing.get_context("fork"))
-            results = pool.map(_unit_crops, range(units))
-        for u, part in enumerate(results):
+        for u, part in enumerate((pool.map if pool else map)(_unit_crops, range(units))):
             parts.append(part)
             log(f"unit {u + 1}/{units}: {presses} presses ({time.perf_counter() - t0:.0f} s)")
     finally:
-        if workers > 1:
+        if pool is not None:
             pool.shutdown()
         _UNITS.clear()
     return Crops.concatenate(parts)
@@ -119,6 +116,13 @@ def _check_args(args) -> None:
         raise UsageError(f"--threads must be >= 1, got {args.threads}")
     if args.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.device is not None:
+        import torch
+
+        try:
+            torch.device(args.device)
+        except RuntimeError:
+            raise UsageError(f"--device must be a torch device such as cpu or cuda, got {args.device!r}") from None
     if not (np.isfinite(args.gradient_clip) and args.gradient_clip > 0):
         raise UsageError(f"--gradient-clip must be a number > 0 (mm per mm), got {args.gradient_clip}")
     if not (np.isfinite(args.gradient_weight) and args.gradient_weight >= 0):
