@@ -68,6 +68,14 @@ class ReadoutError(ValueError):
 WINDOW_OVERLAP_CELLS = 16
 
 
+def _whole_number(text: str) -> int | None:
+    """``int(text)``, or None when the text is not a whole number."""
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
 def window_starts(n: int, size: int, overlap: int = WINDOW_OVERLAP_CELLS) -> list[int]:
     """First cells of the windows of ``size`` cells that cover ``n`` cells along one axis: one
     window (start 0) when ``n <= size``, else the fewest windows that overlap by at least
@@ -176,17 +184,32 @@ class LearnedReadout:
             raise ReadoutError(f"learned read-out {self.path}: no output 'depth_mm' "
                                f"(outputs {self.output_names})")
         window = meta.get("window_cells")
-        try:
-            self.window_cells = None if window is None else int(window)
-        except ValueError:
-            self.window_cells = None
-        if window is not None and (self.window_cells is None or self.window_cells <= 2 * WINDOW_OVERLAP_CELLS):
+        self.window_cells = None if window is None else _whole_number(window)
+        if window is not None and not (self.window_cells or 0) > 2 * WINDOW_OVERLAP_CELLS:
             raise ReadoutError(f"learned read-out {self.path}: metadata field 'window_cells' must be a whole "
                                f"number of cells > {2 * WINDOW_OVERLAP_CELLS}, got {window!r}")
+        self._windows: dict[tuple[int, int], tuple] = {}   # (H, W) -> window plan (:meth:`_window_plan`)
 
     def _run(self, features: np.ndarray) -> np.ndarray:
         out = self.session.run(["depth_mm"], {self.input_name: features[None]})[0]
         return np.asarray(out[0], np.float32)
+
+    def _window_plan(self, h: int, w: int) -> tuple[list[tuple[slice, slice, np.ndarray]], np.ndarray]:
+        """The windows of an (h, w) grid: (rows, columns, blending weights) each, and 1 / the
+        summed weights (h, w); made once per grid size."""
+        plan = self._windows.get((h, w))
+        if plan is None:
+            size = self.window_cells
+            rows, cols = window_starts(h, size), window_starts(w, size)
+            wr, wc = window_weights(h, size, rows), window_weights(w, size, cols)
+            sh, sw = min(h, size), min(w, size)
+            windows, weight = [], np.zeros((h, w), np.float32)
+            for r, w_r in zip(rows, wr):
+                for c, w_c in zip(cols, wc):
+                    windows.append((slice(r, r + sh), slice(c, c + sw), w_r[:, None] * w_c[None, :]))
+                    weight[r:r + sh, c:c + sw] += windows[-1][2]
+            plan = self._windows[(h, w)] = (windows, 1.0 / weight)
+        return plan
 
     def depth_mm(self, features: np.ndarray) -> np.ndarray:
         """Depth (H, W) float32 mm from features (11, H, W) float32; in overlapping windows of
@@ -195,14 +218,8 @@ class LearnedReadout:
         size = self.window_cells
         if size is None or (h <= size and w <= size):
             return self._run(features)
-        rows, cols = window_starts(h, size), window_starts(w, size)
-        wr, wc = window_weights(h, size, rows), window_weights(w, size, cols)
-        sh, sw = min(h, size), min(w, size)
+        windows, inverse_weight = self._window_plan(h, w)
         total = np.zeros((h, w), np.float32)
-        weight = np.zeros((h, w), np.float32)
-        for i, r in enumerate(rows):
-            for j, c in enumerate(cols):
-                wij = wr[i][:, None] * wc[j][None, :]
-                total[r:r + sh, c:c + sw] += wij * self._run(features[:, r:r + sh, c:c + sw])
-                weight[r:r + sh, c:c + sw] += wij
-        return total / weight
+        for rows, cols, weight in windows:
+            total[rows, cols] += weight * self._run(features[:, rows, cols])
+        return total * inverse_weight
