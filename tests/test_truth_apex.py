@@ -34,9 +34,9 @@ def test_neo_hookean_cone_holds_its_apex_and_reaches_its_depth(neo_hookean_cone)
     never released), and the solve converges (it did not: measured as a face contact, that
     node's normal flipped from flank to flank as it moved across the apex by a micrometre).
     The deepest surface point is at the commanded depth, no traction is tensile, gap and force
-    are complementary at every loaded node. Measured: force 0.193688 N, in 8 depth increments
-    of 0.1 mm, one of them halved (the same force to 1e-10 N in 16 of 0.05 mm: the answer does
-    not depend on the path)."""
+    are complementary at every loaded node. Measured: force 0.192229 N in 8 depth increments
+    of 0.1 mm, none halved, 64 Newton steps (0.192217 N in 16 of 0.05 mm: the path moves the
+    answer by 6e-5 of it)."""
     sol, field = neo_hookean_cone
     assert sol.info["apex_node"] >= 0
     apex = sol.mesh.vertices[sol.info["apex_node"]] + sol.displacements_mm[sol.info["apex_node"]]
@@ -50,8 +50,8 @@ def test_neo_hookean_cone_holds_its_apex_and_reaches_its_depth(neo_hookean_cone)
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
     "the gel's surface triangles next to the apex stretch as the gel wraps the tip, and their "
-    "chords across the flanks cut into the cone by up to 24.6 um (within 0.05-0.11 mm of the "
-    "apex); finer triangles there fold under the apex; docs/fem.md"))
+    "chords across the flanks cut into the cone by up to 30.1 um (0.09 mm from the apex; more "
+    "than 10 um within 0.04-0.17 mm of it); finer triangles there fold under the apex; docs/fem.md"))
 def test_neo_hookean_cone_stays_outside_the_cone_within_10um(neo_hookean_cone):
     sol, field = neo_hookean_cone
     pen, _ = surface_penetration(sol, field, pitch_mm=0.01, geometric=True)

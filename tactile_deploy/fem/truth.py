@@ -58,7 +58,7 @@ from tactile_deploy.fem.constraints import SENSOR_SUPPORTS, Supports, build_dof_
 from tactile_deploy.fem.hyperelastic import gel_model
 from tactile_deploy.fem.material import Material
 from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order
-from tactile_deploy.fem.truth_mesh import BULK_GROWTH, build_truth_mesh
+from tactile_deploy.fem.truth_mesh import BULK_GROWTH, DEPTH_GROWTH, build_truth_mesh
 from tactile_deploy.pad.geometry import PadGeometry
 from tactile_deploy.pad.mesh import PadMesh
 
@@ -346,10 +346,12 @@ class TruthSolver:
     model : "neo-hookean" (default) or "linear" (small-strain limit).
     supports : Supports — how the pad is held (default: bonded backplate, free sides).
     h_coarse_mm : float — largest in-plane spacing of the truth mesh.
-    bulk_growth : float — 1 + the growth of the truth mesh's edge length per mm of distance from
-        the contact region (:data:`tactile_deploy.fem.truth_mesh.BULK_GROWTH`, 1.2); 1.15 takes a
-        2 mm ball's force at 1.0 mm from x1.025 to x1.016 of the independent FEM for 1.35 times
-        the nodes, but the neo-Hookean cone's solve then fails (docs/fem.md).
+    bulk_growth : float — 1 + the growth of the truth mesh's edge length per mm of in-plane
+        distance from the contact region (:data:`tactile_deploy.fem.truth_mesh.BULK_GROWTH`, 1.2).
+    depth_growth : float — the same per mm of depth below the sensing surface
+        (:data:`tactile_deploy.fem.truth_mesh.DEPTH_GROWTH`, 1.15): the bulk under the contact
+        sets the force of a nearly incompressible gel (a 2 mm ball at 1.0 mm: x1.025 the
+        independent FEM's force at 1.2, x1.0175 at 1.15, x1.011 at 1.1; docs/fem.md).
     deviatoric : "face" (default) or "element" — where the gel's deviatoric energy is
         integrated (:mod:`tactile_deploy.fem.hyperelastic`: face-based smoothing cells, or tets,
         which are 2-3 % too stiff on the truth meshes).
@@ -359,7 +361,8 @@ class TruthSolver:
     def __init__(self, geometry: PadGeometry, material: Material = Material(),
                  model: str = "neo-hookean", supports: Supports = SENSOR_SUPPORTS,
                  h_coarse_mm: float = 2.0, settings: SolveSettings = SolveSettings(),
-                 deviatoric: str = "face", bulk_growth: float = BULK_GROWTH):
+                 deviatoric: str = "face", bulk_growth: float = BULK_GROWTH,
+                 depth_growth: float = DEPTH_GROWTH):
         if model not in ("neo-hookean", "linear"):
             raise ValueError(f"model must be 'neo-hookean' or 'linear', got {model!r}")
         self.geometry = geometry
@@ -369,7 +372,10 @@ class TruthSolver:
         self.h_coarse_mm = h_coarse_mm
         if not 1.0 < bulk_growth <= 2.0:
             raise ValueError(f"bulk_growth must be in (1, 2] (1 + mm of edge length per mm), got {bulk_growth}")
+        if not 1.0 < depth_growth <= 2.0:
+            raise ValueError(f"depth_growth must be in (1, 2] (1 + mm of edge length per mm), got {depth_growth}")
         self.bulk_growth = bulk_growth
+        self.depth_growth = depth_growth
         self.settings = settings
         self.deviatoric = deviatoric
 
@@ -396,7 +402,7 @@ class TruthSolver:
         sizes = np.concatenate([curvature_sizes(field_, pts, h_fine_mm),
                                 rim_sizes(field_, pts, h_fine_mm)])
         mesh = build_truth_mesh(self.geometry, region_xy, h_fine_mm, h_coarse_mm=self.h_coarse_mm,
-                                growth=self.bulk_growth,
+                                growth=self.bulk_growth, depth_growth=self.depth_growth,
                                 surface_nodes_xy=tip[None], point_sizes=spots,
                                 curvature_sizes=sizes)
         return mesh, h_fine_mm, pts

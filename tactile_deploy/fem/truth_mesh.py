@@ -4,13 +4,14 @@ The frozen output mesh of a pad (~1 mm between sensing nodes) cannot resolve a c
 than ~2 mm. The truth solver meshes the pad anew for every contact with gmsh: fine
 (``h_fine_mm``, at most the depth-pixel pitch 0.27 mm and smaller for small contacts) over the
 region of the sensing surface the indenter can touch, growing linearly with the 3-D distance
-from that region (in-plane and towards the backplate) up to ``h_coarse_mm``. The number of
+from that region (in plane, and more slowly towards the backplate) up to ``h_coarse_mm``. The number of
 nodes therefore grows with the contact region, not with the pad.
 
 Data flow of :func:`build_truth_mesh`::
 
     PadGeometry (disc or box, flat) + refinement region (points on the sensing surface, mm)
-        --> size field s(p) = min(h_coarse, h_fine + (growth - 1) * distance(p, region))
+        --> size field s(p) = min(h_coarse, h_fine + |((growth - 1) d, (depth_growth - 1) z)|),
+            d the in-plane distance from the region, z the depth below the sensing surface
         --> gmsh: OpenCASCADE solid, Frontal-Delaunay surfaces, Delaunay volume, optimised
         --> TruthMesh: sensing-surface nodes first (0 .. n_plane - 1), node sets by surface
 
@@ -29,26 +30,17 @@ from scipy.spatial import cKDTree
 from tactile_deploy.pad.geometry import PadGeometry
 from tactile_deploy.pad.mesh import PadMesh
 
-#: Default growth of the edge length away from the contact region (1 + mm per mm). Under a
-#: contact the bulk tets of a nearly incompressible gel are too stiff when coarse: a 2 mm sphere
-#: pressed 1.0 mm into the 3 mm layer (nu 0.48) gives x1.025 the independent FEM's force at 1.2
-#: (0.77 mm tets at the backplate), x1.016 at 1.15 (1.35 times the nodes), x1.008 at 1.1 (2.1
-#: times); at 1.15 the neo-Hookean cone's solve fails (elements fold below its apex), so 1.2
-#: stays the default (docs/fem.md).
+#: Default growth of the edge length away from the contact region, in plane (1 + mm per mm).
 BULK_GROWTH = 1.2
-
-
-def size_field(points_xyz: np.ndarray, region_xy: np.ndarray, h_fine_mm: float,
-               h_coarse_mm: float, growth: float) -> np.ndarray:
-    """Target edge length (mm) at ``points_xyz`` (k, 3): ``h_fine_mm`` on the region (points
-    ``region_xy`` (r, 2) of the sensing surface z = 0, sampled at most ``h_fine_mm`` apart),
-    growing by ``growth - 1`` per mm of 3-D distance from it, capped at ``h_coarse_mm``."""
-    p = np.asarray(points_xyz, float).reshape(-1, 3)
-    if len(region_xy) == 0:
-        return np.full(len(p), h_coarse_mm)
-    dist, _ = cKDTree(region_xy).query(p[:, :2])
-    dist = np.hypot(np.maximum(dist - 0.5 * h_fine_mm, 0.0), p[:, 2])
-    return np.minimum(h_coarse_mm, h_fine_mm + (growth - 1.0) * dist)
+#: Default growth of the edge length with depth below the contact region (1 + mm per mm). Under
+#: a contact the bulk tets of a nearly incompressible gel are too stiff when coarse: a 2 mm
+#: sphere pressed 1.0 mm into the 3 mm layer (nu 0.48) gives x1.025 the independent FEM's force
+#: with the edges growing by 0.2 per mm in every direction (0.77 mm tets at the backplate, 3,380
+#: nodes), x1.0175 when they grow by 0.15 per mm with depth (0.62 mm there, 4,205 nodes) and
+#: x1.011 by 0.1 (5,071 nodes); by 0.15 in every direction (x1.016, 4,971 nodes) the
+#: neo-Hookean cone's solve failed (elements folded below its apex), with depth alone it
+#: converges (docs/fem.md).
+DEPTH_GROWTH = 1.15
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,11 +71,14 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
                      surface_nodes_xy: np.ndarray | None = None,
                      point_sizes: list[tuple[float, float, float]] = (),
                      curvature_sizes: np.ndarray | None = None,
-                     curvature_growth: float = 1.5) -> TruthMesh:
+                     curvature_growth: float = 1.5,
+                     depth_growth: float = DEPTH_GROWTH) -> TruthMesh:
     """A pad mesh refined over ``region_xy`` (k, 2) mm (points where contact can occur).
 
     ``h_fine_mm``: edge length over the region; ``h_coarse_mm``: the largest edge length;
-    ``growth``: 1 + the increase of the edge length per mm of distance from the region;
+    ``growth``: 1 + the increase of the edge length per mm of in-plane distance from the
+    region; ``depth_growth``: the same per mm of depth below the sensing surface (the two add as
+    the components of a vector);
     ``surface_nodes_xy`` (k, 2): points of the sensing surface that must be nodes (an
     indenter's tip); ``point_sizes``: (x, y, size) triples, finer spots on the sensing surface
     (around a sharp tip) whose size grows by ``growth`` from there; ``curvature_sizes`` (k, 3):
@@ -107,8 +102,9 @@ def build_truth_mesh(geometry: PadGeometry, region_xy: np.ndarray, h_fine_mm: fl
         if tree is None:
             return h_coarse_mm
         d, _ = tree.query((x, y))
-        d = ((max(d - 0.5 * h_fine_mm, 0.0)) ** 2 + z * z) ** 0.5
-        out = min(h_coarse_mm, h_fine_mm + (growth - 1.0) * d)
+        d = max(d - 0.5 * h_fine_mm, 0.0)
+        out = min(h_coarse_mm, h_fine_mm + (((growth - 1.0) * d) ** 2
+                                            + ((depth_growth - 1.0) * z) ** 2) ** 0.5)
         for px, py, ps in point_sizes:
             dp = ((x - px) ** 2 + (y - py) ** 2 + z * z) ** 0.5
             out = min(out, ps + (growth - 1.0) * dp)
