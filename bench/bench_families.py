@@ -9,7 +9,8 @@ For each family's virtual sensor (``tactile_deploy/assets/sensors/<family>.json`
 2. new ball presses (8 at least two contact radii inside the view, 8 within 1.2-1.7 of its
    edges) go through the plugin's imaging pipeline: RMSE within 1.5 contact radii against the
    surface the frames were shaded from, on the family's depth grid (the GelSlim check of
-   ``bench shading``, target 20 um);
+   ``bench shading``, target 20 um); and a second sample of 24 + 24 (seed 4048), since 8 presses
+   move the mean by several um;
 3. the same presses' meshes from the physics lift against the FEM's deformed pad: RMSE of the
    sensing nodes within 1.5 contact radii (um, 3-D distance);
 4. 16 presses of the shared indenter meshes (``../shared/data/indenters``, shapes neither the
@@ -39,6 +40,8 @@ INDENTERS = ROOT.parent / "shared" / "data" / "indenters"
 BALL_MM = 1.5
 #: Presses of the second sample of the shared shapes (three per shape).
 SECOND_SHAPE_SAMPLE = 48
+#: Presses of the second sample of balls, inside the view and near its edges (each).
+SECOND_BALL_SAMPLE = 24
 
 
 def family_bench(name: str, tmp: Path) -> list[dict]:
@@ -96,6 +99,9 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
             grid = plugin.manifest.camera.grid
             presses = virtual_ball_presses(sensor, grid, 8, 8, seed=2024, ball_radius_mm=BALL_MM,
                                            depth_range_mm=(0.4, 1.0), depth_grid=fam.depth_grid)
+            presses2 = virtual_ball_presses(sensor, grid, SECOND_BALL_SAMPLE, SECOND_BALL_SAMPLE,
+                                            seed=4048, ball_radius_mm=BALL_MM,
+                                            depth_range_mm=(0.4, 1.0), depth_grid=fam.depth_grid)
             # meshes against the FEM: the same poses pressed again (noise-free) for the truth
             truth_vertices = [sensor.press(AnalyticSphere(BALL_MM), ContactPose(
                 x_mm=c[0], y_mm=c[1], depth_mm=a * a / (2 * BALL_MM))).vertices_mm[sens]
@@ -108,6 +114,8 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
                                          depth_grid=fam.depth_grid, margin_mm=margin)
         depths = np.stack([pipeline.frame_to_depth(f) for f in presses.frames])
         ball = near_contact_errors(depths, presses, depth_grid=fam.depth_grid)
+        ball2 = near_contact_errors(np.stack([pipeline.frame_to_depth(f) for f in presses2.frames]),
+                                    presses2, depth_grid=fam.depth_grid)
         mesh_err = []
         for d, c, a, truth in zip(depths, presses.centres_mm, presses.radii_mm, truth_vertices):
             v = predictor.infer(d[None, None]).vertices_mm[0][sens]
@@ -119,6 +127,7 @@ def family_bench(name: str, tmp: Path) -> list[dict]:
         shape48 = contact_region_errors(np.stack([pipeline.frame_to_depth(f) for f in sp48.frames]),
                                         sp48.truths, view=view)
         results.append({"family": name, "reader": label, "ball": ball, "edge": presses.near_edge,
+                        "ball2": ball2, "edge2": presses2.near_edge,
                         "mesh": np.array(mesh_err), "shape": shape, "shape_names": sp.names,
                         "shape48": shape48, "shape48_names": sp48.names,
                         "cal": cal.metrics, "t_prepare": t_prepare, "t_cal": t_cal,
@@ -143,7 +152,8 @@ def markdown(results: list[dict]) -> str:
               "measured here; its depth used as trained); new presses: 8 "
               "balls at least two contact radii inside the view, 8 within 1.2-1.7 of its edges "
               "(RMSE within 1.5 contact radii against the surface the frames were shaded from, "
-              "family depth grid), their physics-lift meshes against the FEM (sensing nodes "
+              f"family depth grid) and a second sample of {SECOND_BALL_SAMPLE} + {SECOND_BALL_SAMPLE} "
+              "(seed 4048), the first sample's physics-lift meshes against the FEM (sensing nodes "
               "within 1.5 contact radii, 3-D RMSE), 16 presses of the 16 shared indenter meshes "
               "(contact-region RMSE; seed 99, one per shape) and a second sample of 48 (three per shape, "
               "seed 123), and the same over the depth-grid cells inside the camera's imaging grid "
@@ -155,18 +165,23 @@ def markdown(results: list[dict]) -> str:
                           for r in results)
               + "; with depth 0 there, a contact reaching past the view left a cliff at its edge)."),
              "",
-             "| family | depth from | balls inside: RMSE near mean (worst) | near the edges | mesh vs "
-             "FEM mean (worst) | unseen shapes: contact-region mean (worst) | the same, 48 presses: mean "
+             "| family | depth from | balls inside: RMSE near mean (worst) | near the edges | "
+             f"second sample ({SECOND_BALL_SAMPLE} + {SECOND_BALL_SAMPLE}): inside / near the edges, "
+             "mean (worst) | mesh vs FEM mean (worst) | unseen shapes: contact-region mean (worst) | the same, 48 presses: mean "
              "(worst) | 48 presses, in the view: mean | calibration held-out shape mean / worst | targets |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in results:
         near, edge = r["ball"]["near"], r["edge"]
+        near2, edge2 = r["ball2"]["near"], r["edge2"]
         region, region48 = r["shape"]["region"], r["shape48"]["region"]
-        ok = [("balls 20 um", near[~edge].mean() <= 20), ("edges 20 um", near[edge].mean() <= 20),
+        ok = [("balls 20 um (both samples)", max(near[~edge].mean(), near2[~edge2].mean()) <= 20),
+              ("edges 20 um (both samples)", max(near[edge].mean(), near2[edge2].mean()) <= 20),
               ("shapes 30 um (both samples)", max(np.nanmean(region), np.nanmean(region48)) <= 30)]
         lines.append(
             f"| {r['family']} | {r['reader']} | {near[~edge].mean():.1f} ({near[~edge].max():.1f}) | "
-            f"{near[edge].mean():.1f} | {r['mesh'].mean():.1f} ({r['mesh'].max():.1f}) | "
+            f"{near[edge].mean():.1f} | {near2[~edge2].mean():.1f} ({near2[~edge2].max():.1f}) / "
+            f"{near2[edge2].mean():.1f} ({near2[edge2].max():.1f}) | "
+            f"{r['mesh'].mean():.1f} ({r['mesh'].max():.1f}) | "
             f"{np.nanmean(region):.1f} ({np.nanmax(region):.1f}) | "
             f"{np.nanmean(region48):.1f} ({np.nanmax(region48):.1f}) | "
             f"{np.nanmean(r['shape48']['region_in_view']):.1f} | "
