@@ -109,6 +109,38 @@ def test_neo_hookean_tangent_is_the_derivative_of_its_forces(block_mesh, deviato
     assert np.abs(dF.ravel() - K @ d.ravel()).max() < 1e-7 * np.abs(dF).max()
 
 
+def test_collapse_barrier_holds_a_crushed_tet_and_leaves_the_law_above_half_volume():
+    """The collapse barrier (tactile_deploy.fem.hyperelastic): on one tet crushed to J = 0.2 its
+    forces and tangent are the energy's derivatives, and its energy is b(s) = s - 1 - ln s -
+    (s - 1)^2 / 2 (s = J / 0.5) times kappa 0.25 V on top of the neo-Hookean law; at J = 0.6 it
+    adds nothing."""
+    from tactile_deploy.fem.elasticity import lame_parameters
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    tets = np.array([[0, 1, 2, 3]])
+    gel = NeoHookeanGel(vertices, tets, 0.3, 0.45)
+    lam, mu = lame_parameters(0.3, 0.45)
+    kappa, volume = lam + 2.0 * mu / 3.0, 1.0 / 6.0
+
+    def closed_form(j):  # uniform compression F = j^(1/3) I: no deviatoric energy; J_n = J_t
+        s = min(j / 0.5, 1.0)
+        return volume * (0.5 * kappa * (j - 1.0) ** 2 + kappa * 0.25 * (s - 1.0 - np.log(s) - 0.5 * (s - 1.0) ** 2))
+
+    for j in (0.2, 0.6):
+        u = (j ** (1.0 / 3.0) - 1.0) * vertices
+        assert gel.energy(u) == pytest.approx(closed_form(j), rel=1e-12)
+    assert gel.energy((0.6 ** (1.0 / 3.0) - 1.0) * vertices) == pytest.approx(volume * 0.5 * kappa * 0.16, rel=1e-12)
+    rng = np.random.default_rng(1)
+    u = (0.2 ** (1.0 / 3.0) - 1.0) * vertices + 0.01 * rng.standard_normal((4, 3))
+    d = rng.standard_normal(u.shape)
+    f, K = gel.forces_and_stiffness(u)
+    eps = 1e-7
+    dE = (gel.energy(u + eps * d) - gel.energy(u - eps * d)) / (2 * eps)
+    assert dE == pytest.approx(float((f * d).sum()), rel=1e-7)
+    dF = (gel.forces(u + eps * d) - gel.forces(u - eps * d)) / (2 * eps)
+    assert np.abs(dF.ravel() - K @ d.ravel()).max() < 1e-6 * np.abs(dF).max()
+
+
 def _face_smoothed_linear_stiffness(vertices, tets, E, nu):
     """Small-strain stiffness with the deviatoric part on face-based smoothing cells, written
     from the definition (Nguyen-Thoi et al. 2009) with the linear tet's element matrix: each

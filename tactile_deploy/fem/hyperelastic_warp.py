@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tactile_deploy.fem.hyperelastic import NeoHookeanGel
+from tactile_deploy.fem.hyperelastic import COLLAPSE_BARRIER_J, NeoHookeanGel
 
 
 class NeoHookeanForces:
@@ -96,6 +96,7 @@ def _kernels():
     def volumetric_forces(u: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4i),
                           grads: wp.array(dtype=wp.mat33d, ndim=2),
                           volumes: wp.array(dtype=wp.float64), kappa: wp.float64,
+                          barrier_j: wp.float64,
                           jac: wp.array(dtype=wp.float64),
                           nodal_volume: wp.array(dtype=wp.float64),
                           rest_nodal_volume: wp.array(dtype=wp.float64),
@@ -113,6 +114,9 @@ def _kernels():
             n = idx[k]
             p = p + kappa * (nodal_volume[n] - rest_nodal_volume[n]) / rest_nodal_volume[n]
         p = p * wp.float64(0.25)
+        # the collapse barrier's pressure (0 while J >= barrier_j)
+        sj = wp.min(jac[t] / barrier_j, wp.float64(1.0))
+        p = p + kappa * barrier_j * (wp.float64(2.0) - sj - wp.float64(1.0) / sj)
         s = volumes[t] * p * jac[t]
         wp.atomic_add(forces, idx[0], s * (Fit @ g0))
         wp.atomic_add(forces, idx[1], s * (Fit @ g1))
@@ -160,6 +164,7 @@ class WarpForces:
                   inputs=[uw, self.tets, self.grads, self.volumes, wp.float64(pad.mu)],
                   outputs=[self.forces, self.jac, self.nv])
         wp.launch(self._vol, dim=m, device=self.device,
-                  inputs=[uw, self.tets, self.grads, self.volumes, wp.float64(pad.kappa), self.jac,
+                  inputs=[uw, self.tets, self.grads, self.volumes, wp.float64(pad.kappa),
+                          wp.float64(COLLAPSE_BARRIER_J), self.jac,
                           self.nv, self.rest_nv], outputs=[self.forces])
         return self.forces.numpy().astype(np.float64).reshape(-1, 3)

@@ -42,7 +42,7 @@ import torch
 
 from tactile_deploy.fem.constraints import build_dof_map
 from tactile_deploy.fem.elasticity import assemble_stiffness_numpy
-from tactile_deploy.fem.hyperelastic import NeoHookeanGel
+from tactile_deploy.fem.hyperelastic import COLLAPSE_BARRIER_J, NeoHookeanGel
 
 #: Convergence tolerance (largest nodal change of one fixed-point map, mm): the reference's.
 TOLERANCE_MM = 1e-6
@@ -54,7 +54,7 @@ MIXING = (0.5, 0.2)
 
 class TorchNeoHookean:
     """Internal forces of :class:`~tactile_deploy.fem.hyperelastic.NeoHookeanGel` (deviatoric
-    energy per tet, volumetric energy on the nodal patches) for batches of displacements.
+    energy per tet, volumetric energy on the nodal patches, the collapse barrier per tet) for batches of displacements.
 
     ``forces(u)``: u (B, n, 3) mm -> (forces (B, n, 3) N at the gel's E, ok (B,) bool: no tet
     inverted and every force finite). Samples that are not ok carry meaningless forces."""
@@ -90,6 +90,9 @@ class TorchNeoHookean:
         i1 = (Fs * Fs).sum(dim=(-2, -1))
         P = self.mu * Js.pow(-2.0 / 3.0)[..., None, None] * (Fs - (i1 / 3.0)[..., None, None] * H)
         pbar = (self.kappa * (Jn - 1.0))[:, self.tets].mean(dim=2)                       # (B, m)
+        # the collapse barrier's pressure, tets below COLLAPSE_BARRIER_J (0 above it)
+        sj = torch.clamp(Js / COLLAPSE_BARRIER_J, max=1.0)
+        pbar = pbar + self.kappa * COLLAPSE_BARRIER_J * (2.0 - sj - 1.0 / sj)
         P = P + (pbar * Js)[..., None, None] * H
         # f_ai = V sum_j P_ij g_aj
         fe = self.volumes[None, :, None, None] * torch.einsum("bmij,maj->bmai", P, self.grads)
