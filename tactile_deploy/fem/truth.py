@@ -91,7 +91,7 @@ TIP_PROBE_MM = 0.025
 #: Edge length at a sharp tip, as a fraction of the fine spacing, per gel model: small-strain,
 #: a quarter (the chords then follow a cone's flanks); large deformation, a half (before the
 #: gel's collapse barrier a quarter's elements below the apex, crushed flat as the tip goes
-#: deeper, folded: a 90-degree cone stopped at 0.55 of 0.8 mm; with it a quarter solves at 3.6
+#: deeper, folded: a 90-degree cone stopped at 0.55 of 0.8 mm; with it a quarter solves at 3.4
 #: times the time, the surface's largest penetration 24.3 against 30.3 um, docs/fem.md).
 TIP_SIZE_FRACTION = {"linear": 0.25, "neo-hookean": 0.5}
 #: A sensing node this close (mm) to a sharp tip's apex is the apex's node.
