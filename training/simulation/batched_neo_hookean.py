@@ -54,7 +54,8 @@ MIXING = (0.5, 0.2)
 
 class TorchNeoHookean:
     """Internal forces of :class:`~tactile_deploy.fem.hyperelastic.NeoHookeanGel` (deviatoric
-    energy per tet, volumetric energy on the nodal patches, the collapse barrier per tet) for batches of displacements.
+    energy per tet, volumetric energy on the nodal patches, the collapse barrier per tet) for
+    batches of displacements.
 
     ``forces(u)``: u (B, n, 3) mm -> (forces (B, n, 3) N at the gel's E, ok (B,) bool: no tet
     inverted and every force finite). Samples that are not ok carry meaningless forces."""
