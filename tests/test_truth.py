@@ -191,13 +191,17 @@ def test_small_strain_limit_is_the_linear_locking_free_stiffness(block_mesh, dev
     assert abs(lin.K - expected).max() < 1e-13 * abs(expected).max()
 
 
-def test_direct_factor_solves_in_either_order(block_mesh):
-    # The tangent's direct solver: SuperLU in symmetric mode on the nested-dissection ordered
-    # matrix, and its minimum-degree fallback (no pymetis), agree with a dense solve.
+@pytest.mark.parametrize("backend", ["superlu", "pardiso"])
+def test_direct_factor_solves_in_either_order(block_mesh, backend):
+    # The tangent's direct solver: MKL PARDISO (the sim extra), or SuperLU in symmetric mode on
+    # the nested-dissection ordered matrix and its minimum-degree fallback (no pymetis), agree
+    # with a dense solve; an indefinite tangent (a crushed gel's geometric stiffness) too.
     import scipy.sparse as sp
 
-    from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order
+    from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order, sparse_backend
 
+    if backend == "pardiso" and sparse_backend() != "pardiso":
+        pytest.skip("pypardiso (the pardiso extra, x86-64) is not installed")
     lin = LinearGel(block_mesh.vertices, block_mesh.tets, 0.3, 0.48)
     n = block_mesh.n_nodes
     K = sp.csr_matrix(lin.K) + sp.identity(3 * n)  # positive definite: a spring at every node
@@ -207,8 +211,23 @@ def test_direct_factor_solves_in_either_order(block_mesh):
     perm = nested_dissection_order(graph)
     assert sorted(perm) == list(range(3 * n))
     Kp = K[perm][:, perm]
-    np.testing.assert_allclose(SymmetricFactor(Kp).solve(b[perm]), ref[perm], rtol=0, atol=1e-9)
-    np.testing.assert_allclose(SymmetricFactor(K, ordered=False).solve(b), ref, rtol=0, atol=1e-9)
+    factor = SymmetricFactor(Kp, backend=backend)
+    assert factor.backend == backend
+    np.testing.assert_allclose(factor.solve(b[perm]), ref[perm], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(SymmetricFactor(K, ordered=False, backend=backend).solve(b), ref,
+                               rtol=0, atol=1e-9)
+    # Indefinite: shifted between its 7th and 8th eigenvalue (the unsupported block's six rigid
+    # modes, 1 from the springs, and the first deformation mode go negative): Bunch-Kaufman
+    # LDL' (PARDISO) or LU with partial pivoting.
+    eig = np.sort(np.linalg.eigvalsh(K.toarray()))
+    shift = 0.5 * (eig[6] + eig[7])
+    indefinite = (K - shift * sp.identity(3 * n)).tocsr()
+    factor = SymmetricFactor(indefinite, backend=backend)
+    expected = {"pardiso": {"pardiso-indefinite", "superlu-pivoting"},
+                "superlu": {"superlu-pivoting", "superlu"}}
+    assert factor.backend in expected[backend]
+    np.testing.assert_allclose(factor.solve(b), np.linalg.solve(indefinite.toarray(), b), rtol=0,
+                               atol=1e-8 * np.abs(np.linalg.solve(indefinite.toarray(), b)).max())
 
 
 # ------------------------------------------------------------------------------ patch tests
