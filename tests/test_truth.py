@@ -32,6 +32,7 @@ from tactile_deploy.fem.hyperelastic import LinearGel, NeoHookeanGel
 from tactile_deploy.fem.material import Material
 from tactile_deploy.fem.truth import (
     IntrusionField,
+    NewtonBudgetError,
     SolveSettings,
     TruthSolver,
     indenter_field,
@@ -282,6 +283,29 @@ def test_neo_hookean_block_at_40_percent_strain_matches_the_closed_form(block_me
     v, u = block_mesh.vertices, sol.displacements_mm
     np.testing.assert_allclose(u[:, :2], (lat - 1) * v[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(u[:, 2], (lam - 1) * (v[:, 2] + h), rtol=0, atol=1e-9)
+
+
+def test_newton_budget_counts_every_step_and_is_not_retried(block_mesh):
+    # The 40 % compression takes four depth increments; a budget of every Newton step it used
+    # gives the same solution, one step less stops it (not retried as halved increments).
+    import dataclasses
+
+    free = Supports(backplate="rollers", side="free")
+    solver = TruthSolver(BLOCK, Material(E_mpa=0.3, nu=0.48), supports=free, settings=EXACT)
+    sol = solver.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh, h_fine_mm=1.0)
+    steps = sol.info["newton_steps"]
+    assert steps > 4
+    for budget in (steps, steps - 1):
+        bounded = TruthSolver(BLOCK, Material(E_mpa=0.3, nu=0.48), supports=free,
+                              settings=dataclasses.replace(EXACT, max_newton_steps=budget))
+        if budget == steps:
+            again = bounded.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh,
+                                        h_fine_mm=1.0)
+            assert again.force_n == sol.force_n and again.info["newton_steps"] == steps
+        else:
+            with pytest.raises(NewtonBudgetError, match=f"after {budget} Newton steps in all"):
+                bounded.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh,
+                                    h_fine_mm=1.0)
 
 
 # ---------------------------------------------------------------- bonded thin layer (sphere)

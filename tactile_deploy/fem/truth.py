@@ -102,6 +102,10 @@ class TruthSolveError(RuntimeError):
     """The nonlinear contact iterations did not converge (message names the figures)."""
 
 
+class NewtonBudgetError(TruthSolveError):
+    """The solve used up :attr:`SolveSettings.max_newton_steps` (no depth increment is retried)."""
+
+
 @dataclass(frozen=True)
 class SolveSettings:
     """Tolerances and limits of the semismooth Newton iterations."""
@@ -124,6 +128,9 @@ class SolveSettings:
     anderson_depth: int = 5  # steps remembered when mixing the slip forces
     slide_steps: int = 2  # increments of a tangential slide (after the indenter is pressed)
     max_load_splits: int = 3  # failed depth increments retried as two halves, at most
+    # Newton steps of the whole solve (every load step and retry) at most; None: no bound. A
+    # bound makes a solve that wanders fail in a known time (benchmarks, batches of contacts).
+    max_newton_steps: int | None = None
     # Depth increments (mm) at most under a sharp tip (a cone's apex; large deformation): the
     # gel below the apex is crushed flat, and a longer increment's first Newton steps fold it.
     tip_step_mm: float = 0.1
@@ -893,6 +900,8 @@ class _Solve:
             try:
                 u, state = self._solve_step(u, depth, history, state,
                                             final=i == len(lifts) - 1 and n_slide == 0)
+            except NewtonBudgetError:
+                raise
             except TruthSolveError as err:
                 if splits >= st.max_load_splits or not self.geometric:
                     raise
@@ -951,6 +960,10 @@ class _Solve:
         kept = np.zeros(nc, bool)
         mixing = []  # (slip forces in, slip forces out) of the steps since the sets settled
         for it in range(1, st.max_iterations + 1):
+            if st.max_newton_steps is not None and self.newton_steps >= st.max_newton_steps:
+                raise NewtonBudgetError(
+                    f"contact iterations stopped after {self.newton_steps} Newton steps in all "
+                    f"(max_newton_steps), the indenter {self.lift:.3g} mm above its final depth")
             self.newton_steps += 1
             if self.geometric:
                 self.note_beside(u)
