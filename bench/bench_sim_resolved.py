@@ -1,15 +1,18 @@
 """Resolved contact solver throughput on the CPU (`tactile-deploy bench sim-resolved`).
 
-    python bench/bench_sim_resolved.py [--n 6] [--workers 2]
+    python bench/bench_sim_resolved.py [--n 6] [--workers 2] [--newton-budget 80]
 
 Random primitive contacts (the library's primitives, 0.3-1.0 mm deep, within 8 mm of the
 centre) solved by :class:`tactile_deploy.fem.truth.TruthSolver` on the shipped pad, in
-``--workers`` processes, for four settings measured in the same run: the pad-mesh path of
+``--workers`` processes, for five settings measured in the same run: the pad-mesh path of
 datasets (``simulate_contact``: linear, frictionless, contact at the 5,380-node mesh's nodes; the
 baseline), and the resolved solver with the linear gel (frictionless), the neo-Hookean gel
-(frictionless) and the neo-Hookean gel with Coulomb friction (mu 0.8). A resolved contact that
-does not converge is counted, not dropped. Reports contacts/s, seconds per contact, truth-mesh sizes and
-solver work, and writes the section ``sim-resolved`` of BENCHMARKS.md.
+(frictionless; once more with SuperLU factorising its tangents in place of PARDISO where the
+``pardiso`` extra is installed) and the neo-Hookean gel with Coulomb friction (mu 0.8). A
+resolved contact that does not converge, or not within ``--newton-budget`` Newton steps in all
+(:attr:`SolveSettings.max_newton_steps`), is counted, not dropped. Reports contacts/s, seconds
+per contact, truth-mesh sizes and solver work, and writes the section ``sim-resolved`` of
+BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -25,11 +28,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 BASELINE = "pad mesh, linear, frictionless (simulate_contact; baseline)"
-SETTINGS = {
-    BASELINE: ("pad-mesh", "frictionless"),
-    "resolved, linear, frictionless": ("linear", "frictionless"),
-    "neo-Hookean, frictionless": ("neo-hookean", "frictionless"),
-    "neo-Hookean, Coulomb mu 0.8": ("neo-hookean", "coulomb"),
+SUPERLU = "neo-Hookean, frictionless, SuperLU factorisations"
+SETTINGS = {  # label: (model, friction, the tangents' direct solver: None = the installed default)
+    BASELINE: ("pad-mesh", "frictionless", None),
+    "resolved, linear, frictionless": ("linear", "frictionless", None),
+    "neo-Hookean, frictionless": ("neo-hookean", "frictionless", None),
+    SUPERLU: ("neo-hookean", "frictionless", "superlu"),
+    "neo-Hookean, Coulomb mu 0.8": ("neo-hookean", "coulomb", None),
 }
 
 
@@ -46,7 +51,7 @@ def _contacts(n: int, seed: int):
 
 
 def _solve(args):
-    model, friction, (name, x, y, theta, depth) = args
+    model, friction, linear_solver, budget, (name, x, y, theta, depth) = args
     from threadpoolctl import threadpool_limits
 
     from tactile_deploy.fem.material import Material
@@ -54,7 +59,12 @@ def _solve(args):
     from tactile_deploy.indenters import ContactPose, get_indenter
     from tactile_deploy.pad.geometry import PadGeometry
 
-    from tactile_deploy.fem.truth import TruthSolveError, indenter_field, surface_penetration
+    from tactile_deploy.fem.truth import (
+        SolveSettings,
+        TruthSolveError,
+        indenter_field,
+        surface_penetration,
+    )
 
     material = Material(E_mpa=0.3, nu=0.48, friction=friction, mu=0.8)
     pose = ContactPose(x_mm=x, y_mm=y, theta_deg=theta, depth_mm=depth)
@@ -65,9 +75,10 @@ def _solve(args):
 
             sample = simulate_contact(get_indenter(name), pose, material)
             return {"seconds": time.perf_counter() - t0, "nodes": sample.metadata["n_nodes"],
-                    "factorizations": 0, "penetration_um": float("nan"), "name": name,
-                    "depth": depth, "failed": False}
-        solver = TruthSolver(PadGeometry(), material, model=model)
+                    "penetration_um": float("nan"), "name": name, "depth": depth,
+                    "failed": False}
+        settings = SolveSettings(max_newton_steps=budget, linear_solver=linear_solver)
+        solver = TruthSolver(PadGeometry(), material, model=model, settings=settings)
         try:
             sol = solver.solve(get_indenter(name), pose)
         except TruthSolveError as err:
@@ -82,20 +93,43 @@ def _solve(args):
                                          pitch_mm=0.02, geometric=model != "linear")
     return {"seconds": dt, "nodes": sol.info["n_nodes"], "factorizations": sol.info["factorizations"],
             "penetration_um": 1e3 * sol.max_penetration_mm, "surface_penetration_um": 1e3 * surface,
-            "load_splits": sol.info["load_splits"], "name": name, "depth": depth, "failed": False}
+            "load_splits": sol.info["load_splits"], "name": name, "depth": depth, "failed": False,
+            "newton_steps": sol.info["newton_steps"]}
 
 
-def run(n: int = 6, workers: int = 2, seed: int = 5) -> dict:
+def run(n: int = 6, workers: int = 2, seed: int = 5, newton_budget: int = 80) -> dict:
+    from tactile_deploy.fem.sparse_solver import sparse_backend
+
     contacts = _contacts(n, seed)
-    _solve(("pad-mesh", "frictionless", contacts[0]))  # the pad mesh's response cache on disk
+    _solve(("pad-mesh", "frictionless", None, None, contacts[0]))  # the pad mesh's response cache
+    backend = sparse_backend()
     out = {}
-    for label, (model, friction) in SETTINGS.items():
+    for label, (model, friction, linear_solver) in SETTINGS.items():
+        if label == SUPERLU and backend == "superlu":
+            continue  # the row above is SuperLU already
         t0 = time.perf_counter()
         with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(_solve, [(model, friction, c) for c in contacts]))
+            rows = list(pool.map(_solve, [(model, friction, linear_solver, newton_budget, c)
+                                          for c in contacts]))
         wall = time.perf_counter() - t0
         out[label] = {"contacts_per_s": n / wall, "rows": rows, "wall_s": wall}
-    return {"n": n, "workers": workers, "settings": out, "load": os.getloadavg()[0]}
+    return {"n": n, "workers": workers, "settings": out, "load": os.getloadavg()[0],
+            "backend": backend, "newton_budget": newton_budget}
+
+
+BACKEND_NAMES = {"pardiso": "Intel MKL PARDISO (the `pardiso` extra)",
+                 "superlu": "SuperLU (scipy; the `pardiso` extra is not installed)"}
+
+
+def _failure(row: dict) -> str:
+    """A failed contact's cell: over the Newton budget, or not converged (seconds spent)."""
+    what = "budget spent" if "max_newton_steps" in row.get("error", "") else "not converged"
+    return f"{what} ({row['seconds']:.0f} s)"
+
+
+def _mean_converged(rows: list[dict], key: str) -> str:
+    values = [x[key] for x in rows if not x["failed"] and key in x]
+    return f"{sum(values) / len(values):.1f}" if values else "-"
 
 
 def _largest(values) -> str:
@@ -118,18 +152,22 @@ def markdown(result: dict) -> str:
         "",
         f"CPU: {machine_line()}; {result['workers']} worker processes (one thread each), "
         f"{result['n']} random primitive contacts (0.3-1.0 mm deep) on the GelSlim pad, E 0.3 MPa, "
-        f"nu 0.48; load average {result['load']:.1f} on the machine's 2 cores when finished.",
+        f"nu 0.48; load average {result['load']:.1f} on the machine's 2 cores when finished. "
+        f"Tangents factorised by {BACKEND_NAMES[result.get('backend', 'superlu')]} unless the "
+        f"setting says otherwise; a contact not converged within {result.get('newton_budget')} "
+        "Newton steps in all counts as not converged.",
         "",
         "| setting | contacts/s | vs baseline | median s per contact | median truth nodes | "
-        "factorisations per contact (modified Newton reuses them) | largest penetration at constraint points (um) | largest penetration of the continuous surface (um) | not converged |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "Newton steps per converged contact | "
+        "factorisations per converged contact (modified Newton reuses them) | largest penetration at constraint points (um) | largest penetration of the continuous surface (um) | not converged |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for label, r in result["settings"].items():
         rows = r["rows"]
         lines.append(
             f"| {label} | {r['contacts_per_s']:.3f} | {r['contacts_per_s'] / base:.2f}x | "
             f"{np.median([x['seconds'] for x in rows]):.1f} | {np.median([x['nodes'] for x in rows]):.0f} | "
-            f"{np.mean([x['factorizations'] for x in rows]):.1f} | "
+            f"{_mean_converged(rows, 'newton_steps')} | {_mean_converged(rows, 'factorizations')} | "
             f"{_largest([x['penetration_um'] for x in rows])} | "
             f"{_largest([x.get('surface_penetration_um', float('nan')) for x in rows])} | "
             f"{sum(x['failed'] for x in rows)} |")
@@ -142,7 +180,7 @@ def markdown(result: dict) -> str:
         cells = []
         for label in labels:
             x = result["settings"][label]["rows"][k]
-            cells.append("not converged" if x["failed"] else
+            cells.append(_failure(x) if x["failed"] else
                          f"{x['seconds']:.1f}" + _splits(x.get("load_splits", 0)))
         lines.append(f"| {row['name']} {row['depth']:.2f} mm | " + " | ".join(cells) + " |")
     lines += ["", "The surface check reads the gel's piecewise-linear surface under a 20 um grid "
@@ -156,9 +194,11 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=6)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--newton-budget", type=int, default=80,
+                        help="Newton steps per contact at most (every load step and retry)")
     parser.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     args = parser.parse_args(argv)
-    result = run(args.n, args.workers)
+    result = run(args.n, args.workers, newton_budget=args.newton_budget)
     text = markdown(result)
     print(text)
     if not args.no_write:

@@ -131,6 +131,9 @@ class SolveSettings:
     # Newton steps of the whole solve (every load step and retry) at most; None: no bound. A
     # bound makes a solve that wanders fail in a known time (benchmarks, batches of contacts).
     max_newton_steps: int | None = None
+    # The tangents' direct solver (:class:`SymmetricFactor`): "pardiso" (the pardiso extra),
+    # "superlu", or None: PARDISO where installed, else SuperLU.
+    linear_solver: str | None = None
     # Depth increments (mm) at most under a sharp tip (a cone's apex; large deformation): the
     # gel below the apex is crushed flat, and a longer increment's first Newton steps fold it.
     tip_step_mm: float = 0.1
@@ -1017,7 +1020,7 @@ class _Solve:
             if reuse:
                 factor = cached[1]
             else:
-                factor = SymmetricFactor(Kr, ordered=self.ordered)
+                factor = SymmetricFactor(Kr, ordered=self.ordered, backend=st.linear_solver)
                 self.factorizations += 1
                 cached = (sets_key, factor, K)
             y = factor.solve(rhs_r)
