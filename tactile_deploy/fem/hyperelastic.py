@@ -160,35 +160,29 @@ class NeoHookeanGel:
 
     def _assemble(self, ke: np.ndarray, nodes: np.ndarray) -> sp.csr_matrix:
         """Sum cell matrices (c, 3k, 3k) of cells with ``nodes`` (c, k) into the global CSR
-        (each pattern built once)."""
+        (each pattern built once: its entries sorted by row, then column, are CSR's order)."""
         key_ = nodes.shape[1]
+        n3 = 3 * self.n_nodes
         if key_ not in self._patterns:
             rows, cols = _scatter_pattern(nodes)
-            n3 = 3 * self.n_nodes
-            key = rows * n3 + cols
-            uniq, inverse = np.unique(key, return_inverse=True)
-            self._patterns[key_] = (uniq // n3, uniq % n3, inverse.ravel(), n3)
-        rows, cols, inverse, n3 = self._patterns[key_]
-        data = np.bincount(inverse, ke.ravel(), minlength=len(rows))
-        return sp.csr_matrix((data, (rows, cols)), shape=(n3, n3))
+            uniq, inverse = np.unique(rows * n3 + cols, return_inverse=True)
+            indptr = np.searchsorted(uniq // n3, np.arange(n3 + 1))
+            self._patterns[key_] = (uniq % n3, indptr, inverse.ravel())
+        indices, indptr, inverse = self._patterns[key_]
+        data = np.bincount(inverse, ke.ravel(), minlength=len(indices))
+        return sp.csr_matrix((data, indices, indptr), shape=(n3, n3))
 
     # ----------------------------------------------------------------------------- kinematics
     def _kinematics(self, u: np.ndarray):
         """Per tet: F, J, H = F^-T; per node: J_n; per deviatoric cell: F_c, J_c, H_c."""
         F = np.eye(3) + np.einsum("mai,maj->mij", u[self.tets], self.grads)
-        J = np.linalg.det(F)
-        if np.any(J <= 0.0) or not np.all(np.isfinite(J)):
-            raise InvertedElementError(f"{int(np.sum(~(J > 0)))} tets inverted (J <= 0)")
-        H = np.transpose(np.linalg.inv(F), (0, 2, 1))
+        J, H = _determinant_and_inverse_transpose(F, "tets")
         Jn = np.bincount(self.tets.ravel(), np.repeat(self.volumes * J / 4.0, 4),
                          minlength=self.n_nodes) / self.nodal_volumes
         if self.deviatoric == "element":
             return F, J, H, Jn, (F, J, H)
         Fc = np.eye(3) + np.einsum("mai,maj->mij", u[self.cell_nodes], self.cell_grads)
-        Jc = np.linalg.det(Fc)
-        if np.any(Jc <= 0.0) or not np.all(np.isfinite(Jc)):
-            raise InvertedElementError(f"{int(np.sum(~(Jc > 0)))} face cells inverted (J <= 0)")
-        Hc = np.transpose(np.linalg.inv(Fc), (0, 2, 1))
+        Jc, Hc = _determinant_and_inverse_transpose(Fc, "face cells")
         return F, J, H, Jn, (Fc, Jc, Hc)
 
     def _barrier(self, J: np.ndarray, order: int) -> np.ndarray:
@@ -240,33 +234,33 @@ class NeoHookeanGel:
         """Internal forces (n, 3) N and tangent stiffness (3n, 3n) CSR N/mm at u (n, 3) mm."""
         F, J, H, Jn, cell = self._kinematics(np.asarray(u, np.float64))
         f = self._forces(F, J, H, Jn, cell)
-
-        def outer(x, y):  # (m, k, 3) x (m, k, 3) -> (m, k, 3, k, 3): x_ai y_bm
-            return x[:, :, :, None, None] * y[:, None, None, :, :]
-
-        s = lambda v: v[:, None, None, None, None]  # noqa: E731
-        # deviatoric, per cell
+        # deviatoric, per cell (k slots): entries [a i, b m] of the formulas in the docstring
         Fc, Jc, Hc = cell
         g = self.cell_grads
-        k = g.shape[1]
+        m, k = g.shape[:2]
         i1 = np.einsum("mij,mij->m", Fc, Fc)
         c = self.mu * Jc ** (-2.0 / 3.0)
-        hg = np.einsum("tij,taj->tai", Hc, g)  # (m, k, 3): H g_a
-        fg = np.einsum("tij,taj->tai", Fc, g)  # F g_a
-        gg = np.einsum("taj,tbj->tab", g, g)
-        ke = s(c) * gg[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-        ke += s(-2.0 / 3.0 * c) * (outer(hg, fg) + outer(fg, hg))
-        ke += s(2.0 / 9.0 * c * i1) * outer(hg, hg)
-        ke += s(c * i1 / 3.0) * np.transpose(outer(hg, hg), (0, 3, 2, 1, 4))
-        ke *= s(self.cell_volumes)
-        K = self._assemble(ke.reshape(len(g), 3 * k, 3 * k), self.cell_nodes)
-        # volumetric, per tet: the pressure's geometric term ...
+        hg = (g @ Hc.transpose(0, 2, 1)).reshape(m, 3 * k)  # H g_a, flattened (a, i)
+        fg = (g @ Fc.transpose(0, 2, 1)).reshape(m, 3 * k)  # F g_a
+        hh = hg[:, :, None] * hg[:, None, :]  # (m, 3k, 3k): (H g_a)_i (H g_b)_m
+        hf = hg[:, :, None] * fg[:, None, :]
+        ke = _per_cell(2.0 / 9.0 * c * i1) * hh
+        ke -= _per_cell(2.0 / 3.0 * c) * (hf + hf.transpose(0, 2, 1))
+        ke += _per_cell(c * i1 / 3.0) * _swap_components(hh, k)
+        ke5 = ke.reshape(m, k, 3, k, 3)
+        cgg = _per_cell(c) * (g @ g.transpose(0, 2, 1))  # c g_a . g_b
+        for d in range(3):
+            ke5[:, :, d, :, d] += cgg
+        ke *= _per_cell(self.cell_volumes)
+        K = self._assemble(ke, self.cell_nodes)
+        # volumetric, per tet: the pressure's geometric term and the barrier's curvature ...
         pbar = (self.kappa * (Jn - 1.0))[self.tets].mean(axis=1) + self._barrier(J, 1)
-        pJ = pbar * J
-        hg = np.einsum("tij,taj->tai", H, self.grads)
-        ke = s(pJ * self.volumes) * (outer(hg, hg) - np.transpose(outer(hg, hg), (0, 3, 2, 1, 4)))
-        ke += s(self._barrier(J, 2) * J**2 * self.volumes) * outer(hg, hg)
-        K = K + self._assemble(ke.reshape(len(self.tets), 12, 12), self.tets)
+        hg = self.grads @ H.transpose(0, 2, 1)  # (m, 4, 3): H g_a
+        hgf = hg.reshape(len(self.tets), 12)
+        hh = hgf[:, :, None] * hgf[:, None, :]
+        ke = _per_cell(pbar * J * self.volumes) * (hh - _swap_components(hh, 4))
+        ke += _per_cell(self._barrier(J, 2) * J**2 * self.volumes) * hh
+        K = K + self._assemble(ke, self.tets)
         # ... and the coupling through the nodal volumes: B' diag(kappa / V_n) B.
         vals = ((self.volumes * J / 4.0)[:, None, None, None] * hg[:, None, :, :])
         vals = np.broadcast_to(vals, (len(self.tets), 4, 4, 3)).ravel()
@@ -274,6 +268,33 @@ class NeoHookeanGel:
                           shape=(self.n_nodes, 3 * self.n_nodes)).tocsr()
         K = K + B.T @ sp.diags(self.kappa / self.nodal_volumes) @ B
         return f, K.tocsr()
+
+
+def _per_cell(values: np.ndarray) -> np.ndarray:
+    """(m,) -> (m, 1, 1): a factor per cell matrix."""
+    return values[:, None, None]
+
+
+def _swap_components(block: np.ndarray, k: int) -> np.ndarray:
+    """Cell matrices (m, 3k, 3k) with entries [a i, b m] -> [a m, b i] (the two components
+    exchanged between the slots a and b)."""
+    m = len(block)
+    return block.reshape(m, k, 3, k, 3).transpose(0, 1, 4, 3, 2).reshape(m, 3 * k, 3 * k)
+
+
+def _determinant_and_inverse_transpose(F: np.ndarray, what: str):
+    """det F (m,) and F^-T (m, 3, 3) of 3 x 3 matrices F (m, 3, 3), by cofactors (row i of the
+    cofactor matrix is row i+1 x row i+2 of F, and F^-T = cofactors / det). Raises
+    :class:`InvertedElementError` naming ``what`` where det F <= 0 (or is not finite)."""
+    a, b, c = F[:, 0], F[:, 1], F[:, 2]
+    cof = np.empty_like(F)
+    cof[:, 0] = np.cross(b, c)
+    cof[:, 1] = np.cross(c, a)
+    cof[:, 2] = np.cross(a, b)
+    det = np.einsum("mj,mj->m", a, cof[:, 0])
+    if np.any(det <= 0.0) or not np.all(np.isfinite(det)):
+        raise InvertedElementError(f"{int(np.sum(~(det > 0)))} {what} inverted (J <= 0)")
+    return det, cof / det[:, None, None]
 
 
 class LinearGel:
