@@ -60,6 +60,7 @@ def _solve(args):
     from tactile_deploy.pad.geometry import PadGeometry
 
     from tactile_deploy.fem.truth import (
+        NewtonBudgetError,
         SolveSettings,
         TruthSolveError,
         indenter_field,
@@ -85,7 +86,7 @@ def _solve(args):
             return {"seconds": time.perf_counter() - t0, "nodes": 0, "factorizations": 0,
                     "penetration_um": float("nan"), "surface_penetration_um": float("nan"),
                     "load_splits": 0, "name": name, "depth": depth, "failed": True,
-                    "error": str(err)}
+                    "error": str(err), "over_budget": isinstance(err, NewtonBudgetError)}
         dt = time.perf_counter() - t0
         # the gel's continuous surface against the indenter, checked every 20 um (the solver's
         # own figure is at its constraint points only)
@@ -123,7 +124,7 @@ BACKEND_NAMES = {"pardiso": "Intel MKL PARDISO (the `pardiso` extra)",
 
 def _failure(row: dict) -> str:
     """A failed contact's cell: over the Newton budget, or not converged (seconds spent)."""
-    what = "budget spent" if "max_newton_steps" in row.get("error", "") else "not converged"
+    what = "budget spent" if row.get("over_budget") else "not converged"
     return f"{what} ({row['seconds']:.0f} s)"
 
 
@@ -167,7 +168,8 @@ def markdown(result: dict) -> str:
         lines.append(
             f"| {label} | {r['contacts_per_s']:.3f} | {r['contacts_per_s'] / base:.2f}x | "
             f"{np.median([x['seconds'] for x in rows]):.1f} | {np.median([x['nodes'] for x in rows]):.0f} | "
-            f"{_mean_converged(rows, 'newton_steps')} | {_mean_converged(rows, 'factorizations')} | "
+            f"{_mean_converged(rows, 'newton_steps')} | "
+            f"{_mean_converged(rows, 'factorizations')} | "
             f"{_largest([x['penetration_um'] for x in rows])} | "
             f"{_largest([x.get('surface_penetration_um', float('nan')) for x in rows])} | "
             f"{sum(x['failed'] for x in rows)} |")

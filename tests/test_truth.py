@@ -201,7 +201,11 @@ def test_direct_factor_solves_in_either_order(block_mesh, backend):
 
     import scipy.sparse as sp
 
-    from tactile_deploy.fem.sparse_solver import SymmetricFactor, nested_dissection_order, sparse_backend
+    from tactile_deploy.fem.sparse_solver import (
+        SymmetricFactor,
+        nested_dissection_order,
+        sparse_backend,
+    )
 
     if backend == "pardiso" and platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("Intel MKL (the pardiso extra) is for x86-64 only")

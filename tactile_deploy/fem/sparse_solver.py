@@ -1,5 +1,5 @@
-"""Sparse symmetric positive definite solves: CHOLMOD through cholespy (the linear pad models),
-MKL PARDISO or SuperLU (the resolved solver's tangents, :class:`SymmetricFactor`)."""
+"""Sparse symmetric solves: CHOLMOD through cholespy (the linear pad models' positive definite
+stiffness), MKL PARDISO or SuperLU (the resolved solver's tangents, :class:`SymmetricFactor`)."""
 
 from __future__ import annotations
 
@@ -129,7 +129,8 @@ class SymmetricFactor:
                 if solver.get_iparm(14) == 0:
                     self._pardiso, self._upper = solver, upper
                     self.negative_eigenvalues = int(solver.get_iparm(23))
-                    self.backend = "pardiso" if self.negative_eigenvalues == 0 else "pardiso-indefinite"
+                    self.backend = ("pardiso" if self.negative_eigenvalues == 0
+                                    else "pardiso-indefinite")
                     return
             solver.free_memory(everything=True)
             self._factor_superlu(sp.csc_matrix(A), ordered, pivoting=True)
