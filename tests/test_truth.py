@@ -194,7 +194,7 @@ def test_small_strain_limit_is_the_linear_locking_free_stiffness(block_mesh, dev
 
 @pytest.mark.parametrize("backend", ["superlu", "pardiso"])
 def test_direct_factor_solves_in_either_order(block_mesh, backend):
-    # The tangent's direct solver: MKL PARDISO (the sim extra), or SuperLU in symmetric mode on
+    # The tangent's direct solver: MKL PARDISO (the pardiso extra), or SuperLU in symmetric mode on
     # the nested-dissection ordered matrix and its minimum-degree fallback (no pymetis), agree
     # with a dense solve; an indefinite tangent (a crushed gel's geometric stiffness) too.
     import platform
@@ -235,8 +235,10 @@ def test_direct_factor_solves_in_either_order(block_mesh, backend):
     expected = {"pardiso": {"pardiso-indefinite", "superlu-pivoting"},
                 "superlu": {"superlu-pivoting", "superlu"}}
     assert factor.backend in expected[backend]
-    np.testing.assert_allclose(factor.solve(b), np.linalg.solve(indefinite.toarray(), b), rtol=0,
-                               atol=1e-8 * np.abs(np.linalg.solve(indefinite.toarray(), b)).max())
+    ref = np.linalg.solve(indefinite.toarray(), b)
+    np.testing.assert_allclose(factor.solve(b), ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="backend must be"):
+        SymmetricFactor(K, backend="pardso")
 
 
 # ------------------------------------------------------------------------------ patch tests
@@ -298,22 +300,19 @@ def test_newton_budget_counts_every_step_and_is_not_retried(block_mesh):
     # gives the same solution, one step less stops it (not retried as halved increments).
     import dataclasses
 
-    free = Supports(backplate="rollers", side="free")
-    solver = TruthSolver(BLOCK, Material(E_mpa=0.3, nu=0.48), supports=free, settings=EXACT)
-    sol = solver.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh, h_fine_mm=1.0)
+    def solve(max_newton_steps=None):
+        settings = dataclasses.replace(EXACT, max_newton_steps=max_newton_steps)
+        solver = TruthSolver(BLOCK, Material(E_mpa=0.3, nu=0.48), settings=settings,
+                             supports=Supports(backplate="rollers", side="free"))
+        return solver.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh, h_fine_mm=1.0)
+
+    sol = solve()
     steps = sol.info["newton_steps"]
     assert steps > 4
-    for budget in (steps, steps - 1):
-        bounded = TruthSolver(BLOCK, Material(E_mpa=0.3, nu=0.48), supports=free,
-                              settings=dataclasses.replace(EXACT, max_newton_steps=budget))
-        if budget == steps:
-            again = bounded.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh,
-                                        h_fine_mm=1.0)
-            assert again.force_n == sol.force_n and again.info["newton_steps"] == steps
-        else:
-            with pytest.raises(NewtonBudgetError, match=f"after {budget} Newton steps in all"):
-                bounded.solve_field(plate(0.4 * BLOCK.thickness_mm), mesh=block_mesh,
-                                    h_fine_mm=1.0)
+    again = solve(max_newton_steps=steps)
+    assert again.force_n == sol.force_n and again.info["newton_steps"] == steps
+    with pytest.raises(NewtonBudgetError, match=f"after {steps - 1} Newton steps in all"):
+        solve(max_newton_steps=steps - 1)
 
 
 # ---------------------------------------------------------------- bonded thin layer (sphere)

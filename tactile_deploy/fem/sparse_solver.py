@@ -105,6 +105,9 @@ class SymmetricFactor:
     """
 
     def __init__(self, A: sp.spmatrix, ordered: bool = True, backend: str | None = None):
+        if backend not in (None, "pardiso", "superlu"):
+            raise ValueError(f"backend must be 'pardiso', 'superlu' or None (PARDISO where "
+                             f"installed, else SuperLU), got {backend!r}")
         self.n = A.shape[0]
         self._pardiso = None
         self.negative_eigenvalues = None  # A's inertia, where PARDISO factorised it
