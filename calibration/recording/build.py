@@ -188,9 +188,9 @@ def calibrate_recording(sensor: str, pad: str, presses: str | os.PathLike, *,
                      "radius; depth of steeper contacts than these presses will be read too flat")
 
     if learned is not None:   # a read-out reads the grid it was trained on: model-grid cells
-        from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
+        from tactile_deploy.imaging.imaging_grid import readout_grid, with_grid
 
-        camera = with_grid(camera, imaging_grid(camera, fast_sizes=False))
+        camera = with_grid(camera, readout_grid(camera))
         notes.append(f"imaging grid: {camera.grid.nx} x {camera.grid.ny} cells of "
                      f"{camera.grid.pitch_x_mm:.4f} mm (the learned read-out's cells)")
         rectifier = Rectifier(camera)    # as the runtime's pipeline rectifies

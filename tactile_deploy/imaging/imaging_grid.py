@@ -64,6 +64,21 @@ def imaging_grid(camera: CameraMapping, divisor: int = 1, margin_px: float = 2.0
                       nx=int(c1 - c0 + 1) * divisor, ny=int(r1 - r0 + 1) * divisor)
 
 
+#: Margin (pixels) of a learned read-out's grid: every whole cell inside the image's footprint
+#: (pixel centres 0 .. w - 1, the footprint half a pixel wider; the rectifier replicates the
+#: outermost pixels across that half pixel). The shading model keeps 2 px: its table and
+#: integration were fitted there. With 2 px the GelSight Mini's read-out saw 66 x 48 cells
+#: of the 68 x 50 inside its image, and contacts at the view's edge reached 0.3-0.4 mm into
+#: a strip where the depth could only be carried from the edge (docs/families.md).
+READOUT_MARGIN_PX = -0.5
+
+
+def readout_grid(camera: CameraMapping) -> OutputGrid:
+    """The imaging grid a learned read-out reads (and is trained on): the whole box of
+    model-grid cells inside the camera's image (:data:`READOUT_MARGIN_PX`), not trimmed."""
+    return imaging_grid(camera, margin_px=READOUT_MARGIN_PX, fast_sizes=False)
+
+
 def _smooth(n: int) -> bool:
     """True when n has no prime factor above 5."""
     for p in (2, 3, 5):

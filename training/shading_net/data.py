@@ -95,7 +95,7 @@ def unit_presses(config, n: int, rng: np.random.Generator, simulator=None,
     """``n`` presses of the virtual unit ``config`` drawn by ``mix``; returns (presses, the
     unit's simulator, to share with the next unit of the same pad)."""
     from tactile_deploy.imaging.camera_mapping import grid_centres_mm
-    from tactile_deploy.imaging.imaging_grid import imaging_grid, with_grid
+    from tactile_deploy.imaging.imaging_grid import readout_grid, with_grid
     from tactile_deploy.imaging.shading import frame_offset
     from tactile_deploy.indenters import AnalyticSphere, ContactPose
     from tactile_deploy.indenters.library import list_indenters
@@ -112,7 +112,7 @@ def unit_presses(config, n: int, rng: np.random.Generator, simulator=None,
 
     sensor = VirtualSensor(config, simulator=simulator)
     sensor.prepare()
-    camera = with_grid(config.optics.camera, imaging_grid(config.optics.camera, fast_sizes=False))
+    camera = with_grid(config.optics.camera, readout_grid(config.optics.camera))
     grid = camera.grid
     rect = Rectifier(camera, 2)
     to_grid = GridResampler(sensor.renderer.grid, grid)
