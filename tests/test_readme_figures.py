@@ -172,8 +172,8 @@ def test_family_figures_are_the_benchmarks():
         r"both meet the depth targets on two samples each: DIGIT balls ([0-9.]+) / ([0-9.]+) um inside\s+"
         r"the view, ([0-9.]+) / ([0-9.]+) um near its edges, unseen shapes ([0-9.]+) / ([0-9.]+) um; the GelSight "
         r"Mini, whose\s+LED layout is not published and is assumed, balls ([0-9.]+) / ([0-9.]+) um "
-        r"inside the view, ([0-9.]+) / ([0-9.]+)\s+um near its edges \(target 20 um, by a small margin\) and "
-        r"unseen shapes ([0-9.]+) / ([0-9.]+) um\s+\(target 30 um\)")
+        r"inside the view, ([0-9.]+) / ([0-9.]+)\s+um near its edges \(target 20 um\) and "
+        r"unseen shapes ([0-9.]+) / ([0-9.]+) um \(target 30 um\)")
     text = section("families")
     for family, readme_figures in (("digit", figures[:6]), ("gelsight_mini", figures[6:])):
         cells = [line.strip().strip("|").split("|") for line in text.splitlines()
