@@ -24,7 +24,7 @@ def imaging_grid(camera: CameraMapping, divisor: int = 1, margin_px: float = 2.0
     (``margin_px`` inside the image), as an OutputGrid at ``model pitch / divisor``. With
     ``fast_sizes`` it is trimmed (centred) to sizes with prime factors 2, 3 and 5 only (the
     shading model's depth integration by sine transforms is ~1.5 x faster); a learned read-out,
-    which integrates nothing, reads the whole box.
+    which integrates nothing, reads the whole box at its own margin (:func:`readout_grid`).
 
     Raises ValueError when the camera sees no whole model-grid cell.
     """
